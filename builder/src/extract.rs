@@ -1,0 +1,247 @@
+//! Turns a selected candidate into a [`Template`]: terrain from the DEM, then the
+//! template pixels resampled north-up on the local tangent plane.
+
+use gdal::spatial_ref::CoordTransform;
+use nalgebra::{Matrix3, Vector3};
+use trn_geodesy::{Enu, Geodetic, LocalFrame};
+use trn_landmark::{GeoBox, HeightGrid, Template, TemplateQuality, TerrainPatch};
+
+use crate::pyramid::Window;
+use crate::select::Candidate;
+use crate::source::PixelToCrs;
+use crate::terrain::DemSampler;
+
+/// Maps between a window's pixels and WGS84 for one pyramid level of an ortho.
+pub struct WindowGeo<'a> {
+    pub to_crs: PixelToCrs,
+    /// Native pixels per level pixel (2^p).
+    pub scale: f64,
+    pub to_wgs: &'a CoordTransform,
+    pub from_wgs: &'a CoordTransform,
+}
+
+impl WindowGeo<'_> {
+    /// (lon, lat) of window pixel centres.
+    pub fn lonlat(&self, win: &Window, px: &[(f64, f64)]) -> Option<Vec<(f64, f64)>> {
+        let mut xs = Vec::with_capacity(px.len());
+        let mut ys = Vec::with_capacity(px.len());
+        for &(x, y) in px {
+            let (nc, nr) = ((win.x0 as f64 + x + 0.5) * self.scale, (win.y0 as f64 + y + 0.5) * self.scale);
+            let (cx, cy) = self.to_crs.apply(nc, nr);
+            xs.push(cx);
+            ys.push(cy);
+        }
+        let mut zs = vec![0.0; xs.len()];
+        self.to_wgs.transform_coords(&mut xs, &mut ys, &mut zs).ok()?;
+        Some(xs.into_iter().zip(ys).collect())
+    }
+
+    /// Window pixel coordinates (centre convention) of (lon, lat) points.
+    pub fn window_px(&self, win: &Window, lonlat: &[(f64, f64)]) -> Option<Vec<(f64, f64)>> {
+        let mut xs: Vec<f64> = lonlat.iter().map(|p| p.0).collect();
+        let mut ys: Vec<f64> = lonlat.iter().map(|p| p.1).collect();
+        let mut zs = vec![0.0; xs.len()];
+        self.from_wgs.transform_coords(&mut xs, &mut ys, &mut zs).ok()?;
+        Some(
+            xs.into_iter()
+                .zip(ys)
+                .map(|(x, y)| {
+                    let (nc, nr) = self.to_crs.invert(x, y);
+                    (nc / self.scale - 0.5 - win.x0 as f64, nr / self.scale - 0.5 - win.y0 as f64)
+                })
+                .collect(),
+        )
+    }
+}
+
+#[derive(Clone, Copy, Debug)]
+pub struct ExtractParams {
+    pub level: u8,
+    pub gsd_m: f64,
+    pub size_px: u32,
+    pub height_grid_n: u32,
+    /// Largest RMS distance of the terrain from its plane (m).
+    pub max_plane_residual_m: f64,
+    pub source: u32,
+}
+
+/// Why a candidate did not become a template (counted for the build log).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Reject {
+    Transform,
+    NoDem,
+    Relief,
+    OutsideWindow,
+    Nodata,
+}
+
+pub fn extract(
+    win: &Window,
+    geo: &WindowGeo,
+    dem: &DemSampler,
+    cand: &Candidate,
+    p: &ExtractParams,
+) -> Result<Template, Reject> {
+    let centre_ll = geo.lonlat(win, &[(cand.x as f64, cand.y as f64)]).ok_or(Reject::Transform)?[0];
+    let h_centre = dem.heights_ellipsoidal(&[centre_ll]).ok_or(Reject::NoDem)?[0];
+    let centre = Geodetic::new(centre_ll.1, centre_ll.0, h_centre);
+    let frame = LocalFrame::at(centre);
+    let half_m = (p.size_px as f64 - 1.0) / 2.0 * p.gsd_m;
+    let footprint_half_m = p.size_px as f64 / 2.0 * p.gsd_m;
+
+    // Terrain: n x n grid over the footprint, row 0 north.
+    let n = p.height_grid_n.max(2) as usize;
+    let spacing = 2.0 * footprint_half_m / (n as f64 - 1.0);
+    let mut grid_en = Vec::with_capacity(n * n);
+    for r in 0..n {
+        for c in 0..n {
+            grid_en.push((-footprint_half_m + c as f64 * spacing, footprint_half_m - r as f64 * spacing));
+        }
+    }
+    let lonlat_of = |en: &[(f64, f64)], up: &dyn Fn(usize) -> f64| -> Vec<(f64, f64)> {
+        en.iter()
+            .enumerate()
+            .map(|(i, &(e, nn))| {
+                let g = frame.to_ecef(Enu::new(e, nn, up(i))).to_geodetic();
+                (g.lon_deg, g.lat_deg)
+            })
+            .collect()
+    };
+    let grid_ll = lonlat_of(&grid_en, &|_| 0.0);
+    let hs = dem.heights_ellipsoidal(&grid_ll).ok_or(Reject::NoDem)?;
+    let mut heights = Vec::with_capacity(n * n);
+    for (i, &(lon, lat)) in grid_ll.iter().enumerate() {
+        let enu = frame.to_enu(&Geodetic::new(lat, lon, hs[i]).to_ecef());
+        heights.push(enu.up_m());
+    }
+    let (normal, rms) = fit_plane(&grid_en, &heights);
+    if rms > p.max_plane_residual_m {
+        return Err(Reject::Relief);
+    }
+    let height_grid = HeightGrid {
+        n: n as u32,
+        spacing_m: spacing,
+        heights_m: heights.iter().map(|&h| h as f32).collect(),
+    };
+
+    // Affine map tangent plane (e, n) -> window pixel, fitted on 9 points on the terrain.
+    let mut fit_en = Vec::new();
+    for &fe in &[-1.0, 0.0, 1.0] {
+        for &fn_ in &[-1.0, 0.0, 1.0] {
+            fit_en.push((fe * half_m, fn_ * half_m));
+        }
+    }
+    let fit_ll = lonlat_of(&fit_en, &|i| height_grid.height_at(fit_en[i].0, fit_en[i].1));
+    let fit_px = geo.window_px(win, &fit_ll).ok_or(Reject::Transform)?;
+    let affine = fit_affine(&fit_en, &fit_px).ok_or(Reject::Transform)?;
+
+    let size = p.size_px as usize;
+    let mut pixels = Vec::with_capacity(size * size);
+    let c0 = (size as f64 - 1.0) / 2.0;
+    for row in 0..size {
+        for col in 0..size {
+            let e = (col as f64 - c0) * p.gsd_m;
+            let nn = (c0 - row as f64) * p.gsd_m;
+            let x = affine[0] * e + affine[1] * nn + affine[2];
+            let y = affine[3] * e + affine[4] * nn + affine[5];
+            pixels.push(bilinear(win, x, y)?.round().clamp(0.0, 255.0) as u8);
+        }
+    }
+
+    let tmp = Template {
+        id: 0,
+        level: p.level,
+        gsd_m: p.gsd_m,
+        width_px: p.size_px,
+        height_px: p.size_px,
+        center: centre,
+        footprint: GeoBox::new(0.0, 0.0, 0.0, 0.0),
+        terrain: TerrainPatch {
+            plane_normal_enu: [normal.x, normal.y, normal.z],
+            plane_residual_rms_m: rms,
+            height_grid,
+        },
+        quality: TemplateQuality {
+            shi_tomasi: cand.shi_tomasi,
+            contrast_std: cand.contrast_std,
+            second_peak_ncc: cand.second_peak_ncc,
+        },
+        source: p.source,
+        pixels,
+    };
+    let corners = tmp.footprint_corners();
+    let footprint =
+        GeoBox::around(corners.iter().map(|g| (g.lon_deg, g.lat_deg))).ok_or(Reject::Transform)?;
+    Ok(Template { footprint, ..tmp })
+}
+
+fn bilinear(win: &Window, x: f64, y: f64) -> Result<f64, Reject> {
+    let (fx, fy) = (x.floor(), y.floor());
+    let (ix, iy) = (fx as isize, fy as isize);
+    if ix < 0 || iy < 0 || ix + 1 >= win.width as isize || iy + 1 >= win.height as isize {
+        return Err(Reject::OutsideWindow);
+    }
+    let (tx, ty) = (x - fx, y - fy);
+    let i = iy as usize * win.width + ix as usize;
+    let j = i + win.width;
+    if win.valid[i] & win.valid[i + 1] & win.valid[j] & win.valid[j + 1] == 0 {
+        return Err(Reject::Nodata);
+    }
+    let l = &win.lum;
+    Ok((l[i] as f64 * (1.0 - tx) + l[i + 1] as f64 * tx) * (1.0 - ty)
+        + (l[j] as f64 * (1.0 - tx) + l[j + 1] as f64 * tx) * ty)
+}
+
+/// Least-squares plane u = a e + b n + c; returns its unit normal (ENU) and the RMS residual.
+pub fn fit_plane(en: &[(f64, f64)], up: &[f64]) -> (Vector3<f64>, f64) {
+    let mut ata = Matrix3::zeros();
+    let mut atb = Vector3::zeros();
+    for (&(e, n), &u) in en.iter().zip(up) {
+        let row = Vector3::new(e, n, 1.0);
+        ata += row * row.transpose();
+        atb += row * u;
+    }
+    let sol = ata.lu().solve(&atb).unwrap_or_else(Vector3::zeros);
+    let rms =
+        (en.iter().zip(up).map(|(&(e, n), &u)| (u - (sol.x * e + sol.y * n + sol.z)).powi(2)).sum::<f64>()
+            / en.len().max(1) as f64)
+            .sqrt();
+    (Vector3::new(-sol.x, -sol.y, 1.0).normalize(), rms)
+}
+
+/// Least-squares affine map (e, n) -> (x, y): `[a0 a1 a2; a3 a4 a5]`.
+fn fit_affine(en: &[(f64, f64)], px: &[(f64, f64)]) -> Option<[f64; 6]> {
+    let mut ata = Matrix3::zeros();
+    let mut bx = Vector3::zeros();
+    let mut by = Vector3::zeros();
+    for (&(e, n), &(x, y)) in en.iter().zip(px) {
+        let row = Vector3::new(e, n, 1.0);
+        ata += row * row.transpose();
+        bx += row * x;
+        by += row * y;
+    }
+    let lu = ata.lu();
+    let sx = lu.solve(&bx)?;
+    let sy = lu.solve(&by)?;
+    Some([sx.x, sx.y, sx.z, sy.x, sy.y, sy.z])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn plane_fit_recovers_slope_and_zero_residual() {
+        let en: Vec<(f64, f64)> =
+            (0..25).map(|i| ((i % 5) as f64 * 10.0 - 20.0, (i / 5) as f64 * 10.0 - 20.0)).collect();
+        let up: Vec<f64> = en.iter().map(|&(e, n)| 0.5 * e - 0.25 * n + 3.0).collect();
+        let (normal, rms) = fit_plane(&en, &up);
+        assert!(rms < 1e-9);
+        let expect = Vector3::new(-0.5, 0.25, 1.0).normalize();
+        assert!((normal - expect).norm() < 1e-9);
+        // A bump gives a residual.
+        let mut bumped = up.clone();
+        bumped[12] += 10.0;
+        assert!(fit_plane(&en, &bumped).1 > 1.0);
+    }
+}

@@ -1,0 +1,718 @@
+//! The offline landmark builder: cuts orthoimagery and elevation models into
+//! small north-up image templates, 3D-referenced on the WGS84 ellipsoid, and
+//! stores them in a landmark database (SQLite/GeoPackage, see `trn-store`).
+//!
+//! The main entry point is [`build`] with its [`BuildOptions`]. Per ortho mosaic
+//! it walks a luminance pyramid level by level in tiles (memory bounded, in
+//! parallel), scores texture and distinctiveness ([`select`]), cuts the chosen
+//! templates on the local tangent plane with the DEM's terrain ([`extract`]), and
+//! writes the database to a temporary file that is renamed into place only when
+//! everything succeeded.
+
+pub mod error;
+pub mod extract;
+pub mod pyramid;
+pub mod select;
+pub mod source;
+pub mod synth;
+pub mod terrain;
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+use gdal::spatial_ref::CoordTransform;
+use indicatif::{ProgressBar, ProgressStyle};
+use rayon::prelude::*;
+use serde::Serialize;
+use tracing::{info, warn};
+use trn_landmark::Template;
+
+pub use error::{BuildError, Result};
+use extract::{ExtractParams, Reject, WindowGeo};
+use pyramid::{LevelFile, OrthoReader, Window};
+use select::{Core, LumWindow, SelectParams};
+use source::{Luminance, RasterInfo, VerticalDatum};
+use terrain::{DemSampler, DemSpec};
+
+/// Where EGM96 lives on Debian (package proj-data).
+pub const EGM96_GRID: &str = "/usr/share/proj/egm96_15.gtx";
+
+/// Vertical datum of the DEM as the user states it (overrides the file's).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+pub enum DemVertical {
+    Egm96,
+    Ellipsoid,
+    /// Heights above the geoid of `--geoid GRID`.
+    Geoid,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct BuildOptions {
+    pub orthos: Vec<PathBuf>,
+    pub dems: Vec<PathBuf>,
+    pub out: PathBuf,
+    /// 1-based bands making the luminance: one (grey) or three (red, green, blue).
+    pub ortho_bands: Option<Vec<usize>>,
+    pub dem_vertical: Option<DemVertical>,
+    pub geoid: Option<PathBuf>,
+    /// Template side (pixels).
+    pub template_size: u32,
+    /// Side of the cell that gets `per_cell` landmarks, in template pixels.
+    pub spacing_px: u32,
+    pub per_cell: usize,
+    /// Number of levels; `None`: from the base GSD up to `max_gsd_m`.
+    pub levels: Option<u8>,
+    pub max_gsd_m: f64,
+    /// GSD of level 0; `None`: the coarsest ortho's pixel size.
+    pub base_gsd_m: Option<f64>,
+    pub min_contrast_std: f32,
+    pub min_shi_tomasi: f32,
+    pub max_saturated: f32,
+    /// Uniqueness search radius (template pixels) and highest allowed second NCC peak.
+    pub search_radius_px: u32,
+    pub max_second_peak: f32,
+    /// Largest RMS terrain distance from the template's plane, in GSDs.
+    pub max_relief_gsd: f64,
+    pub height_grid_n: u32,
+}
+
+impl BuildOptions {
+    pub fn new(orthos: Vec<PathBuf>, dems: Vec<PathBuf>, out: PathBuf) -> Self {
+        Self {
+            orthos,
+            dems,
+            out,
+            ortho_bands: None,
+            dem_vertical: None,
+            geoid: None,
+            template_size: 32,
+            spacing_px: 64,
+            per_cell: 1,
+            levels: None,
+            max_gsd_m: 64.0,
+            base_gsd_m: None,
+            min_contrast_std: 6.0,
+            min_shi_tomasi: 2.0,
+            max_saturated: 0.1,
+            search_radius_px: 8,
+            max_second_peak: 0.9,
+            max_relief_gsd: 0.5,
+            height_grid_n: 9,
+        }
+    }
+
+    fn check(&self) -> Result<()> {
+        let bad = |option, reason: &str| Err(BuildError::Option { option, reason: reason.into() });
+        if self.orthos.is_empty() {
+            return bad("--ortho", "give at least one orthoimage");
+        }
+        if self.dems.is_empty() {
+            return bad("--dem", "give at least one DEM");
+        }
+        if !(8..=512).contains(&self.template_size) {
+            return bad("--template-size", "must be 8..=512 pixels");
+        }
+        if self.spacing_px < self.template_size / 2 {
+            return bad("--spacing", "must be at least half the template size");
+        }
+        if self.per_cell == 0 {
+            return bad("--per-cell", "must be at least 1");
+        }
+        if matches!(self.levels, Some(0) | Some(13..)) {
+            return bad("--levels", "must be 1..=12");
+        }
+        if let Some(g) = self.base_gsd_m {
+            if !(g.is_finite() && g > 0.0) {
+                return bad("--base-gsd", "must be a positive number of metres");
+            }
+        }
+        if !(self.max_second_peak > 0.0 && self.max_second_peak <= 1.0) {
+            return bad("--max-second-peak", "must be in (0, 1]");
+        }
+        if self.dem_vertical == Some(DemVertical::Geoid) && self.geoid.is_none() {
+            return bad("--dem-vertical", "geoid needs --geoid GRID");
+        }
+        if self.out.is_dir() {
+            return bad("--out", "is a directory");
+        }
+        Ok(())
+    }
+}
+
+/// What a build produced.
+#[derive(Clone, Debug, Serialize)]
+pub struct BuildReport {
+    pub out: PathBuf,
+    pub templates: usize,
+    /// (level, GSD m, count)
+    pub levels: Vec<(u8, f64, usize)>,
+    pub candidates: usize,
+    pub rejected: HashMap<String, usize>,
+    pub seconds: f64,
+}
+
+/// An ortho mosaic: files with one CRS and pixel size, read as one raster.
+struct OrthoGroup {
+    index: u32,
+    /// The raster read (the file itself, or a VRT over several).
+    path: PathBuf,
+    info: RasterInfo,
+    lum: Luminance,
+    files: Vec<PathBuf>,
+}
+
+/// Builds the landmark database. `cancel` stops the build between tiles; the
+/// output is then left untouched.
+pub fn build(opts: &BuildOptions, cancel: &AtomicBool) -> Result<BuildReport> {
+    let started = Instant::now();
+    opts.check()?;
+    let out_dir = match opts.out.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    if !out_dir.is_dir() {
+        return Err(BuildError::Option {
+            option: "--out",
+            reason: format!("folder {} does not exist", out_dir.display()),
+        });
+    }
+
+    // Inputs: open and check everything before any work.
+    let mut ortho_infos = Vec::new();
+    for p in &opts.orthos {
+        let (ds, info) = source::inspect(p)?;
+        source::check_not_all_nodata(&ds, p)?;
+        let lum = source::luminance_for(&ds, &info, opts.ortho_bands.as_deref())?;
+        info!(
+            "ortho {}: {}x{} px, {} band(s) {}, {:.2} x {:.2} m pixels",
+            p.display(),
+            info.width,
+            info.height,
+            info.band_count,
+            info.band_type,
+            info.pixel_dx_m,
+            info.pixel_dy_m
+        );
+        ortho_infos.push((info, lum));
+    }
+    let dems = open_dems(opts)?;
+    check_overlap(&ortho_infos.iter().map(|o| &o.0).collect::<Vec<_>>(), &dems)?;
+
+    let work = tempfile::Builder::new()
+        .prefix(".trn-build-")
+        .tempdir_in(&out_dir)
+        .map_err(|source| BuildError::Io { path: out_dir.clone(), source })?;
+    let groups = group_orthos(ortho_infos, work.path())?;
+
+    let base_gsd = opts.base_gsd_m.unwrap_or_else(|| {
+        let g = groups.iter().map(|g| g.info.pixel_dx_m.max(g.info.pixel_dy_m)).fold(0.0, f64::max);
+        // Three significant digits keep level GSDs readable.
+        let mag = 10f64.powf(g.log10().floor() - 2.0);
+        (g / mag).ceil() * mag
+    });
+    let levels = opts.levels.unwrap_or_else(|| {
+        let mut n = 1u8;
+        while n < 12 && base_gsd * 2f64.powi(n as i32) <= opts.max_gsd_m {
+            n += 1;
+        }
+        n
+    });
+    info!("levels: {levels}, GSD {base_gsd} m x 2^level");
+
+    let mut all: Vec<Template> = Vec::new();
+    let mut rejected: HashMap<String, usize> = HashMap::new();
+    let mut candidates = 0usize;
+    for g in &groups {
+        let (t, r, c) = build_group(opts, g, &dems, base_gsd, levels, work.path(), cancel)?;
+        all.extend(t);
+        for (k, v) in r {
+            *rejected.entry(format!("{k:?}")).or_default() += v;
+        }
+        candidates += c;
+    }
+    if groups.len() > 1 {
+        let before = all.len();
+        all = dedupe(all, opts);
+        info!("dropped {} duplicate templates where mosaics overlap", before - all.len());
+    }
+    info!("{candidates} candidates passed texture and uniqueness; rejected after: {rejected:?}");
+    if all.is_empty() {
+        return Err(BuildError::NoTemplates);
+    }
+    all.sort_by(|a, b| (a.level, a.center.lat_deg.to_bits()).cmp(&(b.level, b.center.lat_deg.to_bits())));
+
+    // Write to a temporary database next to the output; rename only on success.
+    let tmp_db = work.path().join("landmarks.gpkg");
+    let mut writer = trn_store::DbWriter::create(&tmp_db)?;
+    let meta = metadata(opts, &groups, &dems, base_gsd, levels);
+    for (k, v) in meta {
+        writer.set_metadata(&k, &v)?;
+    }
+    for chunk in all.chunks_mut(2000) {
+        if cancel.load(Ordering::Relaxed) {
+            return Err(BuildError::Cancelled);
+        }
+        writer.insert_batch(chunk)?;
+    }
+    writer.finish()?;
+    std::fs::rename(&tmp_db, &opts.out)
+        .map_err(|source| BuildError::Io { path: opts.out.clone(), source })?;
+
+    let mut per_level = Vec::new();
+    for k in 0..levels {
+        let n = all.iter().filter(|t| t.level == k).count();
+        per_level.push((k, base_gsd * 2f64.powi(k as i32), n));
+    }
+    let report = BuildReport {
+        out: opts.out.clone(),
+        templates: all.len(),
+        levels: per_level,
+        candidates,
+        rejected,
+        seconds: started.elapsed().as_secs_f64(),
+    };
+    info!("wrote {} templates to {} in {:.1} s", report.templates, opts.out.display(), report.seconds);
+    Ok(report)
+}
+
+fn open_dems(opts: &BuildOptions) -> Result<Vec<DemSpec>> {
+    let mut geoids: HashMap<PathBuf, Arc<trn_geodesy::GeoidGrid>> = HashMap::new();
+    let mut load = |p: &Path| -> Result<Arc<trn_geodesy::GeoidGrid>> {
+        if let Some(g) = geoids.get(p) {
+            return Ok(g.clone());
+        }
+        let g = Arc::new(terrain::load_geoid(p)?);
+        geoids.insert(p.into(), g.clone());
+        Ok(g)
+    };
+    let mut out = Vec::new();
+    for p in &opts.dems {
+        let (ds, info) = source::inspect(p)?;
+        source::check_not_all_nodata(&ds, p)?;
+        let band =
+            ds.rasterband(1).map_err(|e| BuildError::Read { path: p.clone(), reason: e.to_string() })?;
+        let unit = band.unit().to_lowercase();
+        let to_metres = match unit.as_str() {
+            "ft" | "foot" | "feet" => 0.3048,
+            "us-ft" | "us survey foot" | "ftus" => 1200.0 / 3937.0,
+            _ => 1.0,
+        };
+        let declared = source::declared_vertical(&info.srs_wkt)
+            .or_else(|| source::is_ellipsoidal_3d(&info.srs_wkt).then_some(VerticalDatum::Ellipsoid));
+        let datum = match (opts.dem_vertical, &declared) {
+            (Some(DemVertical::Egm96), _) => VerticalDatum::Egm96,
+            (Some(DemVertical::Ellipsoid), _) => VerticalDatum::Ellipsoid,
+            (Some(DemVertical::Geoid), _) => VerticalDatum::Geoid { name: "--geoid".into() },
+            (None, Some(d)) => d.clone(),
+            (None, None) => return Err(BuildError::UnknownVerticalDatum { path: p.clone() }),
+        };
+        if let (Some(flag), Some(d)) = (opts.dem_vertical, &declared) {
+            warn!("{}: file declares {d:?}, --dem-vertical {flag:?} overrides it", p.display());
+        }
+        let source_of_datum = if opts.dem_vertical.is_some() { "--dem-vertical" } else { "the file's CRS" };
+        let geoid = match &datum {
+            VerticalDatum::Ellipsoid => None,
+            VerticalDatum::Egm96 => Some(load(opts.geoid.as_deref().unwrap_or(Path::new(EGM96_GRID)))?),
+            VerticalDatum::Geoid { name } => match &opts.geoid {
+                Some(g) => Some(load(g)?),
+                None => return Err(BuildError::GeoidGridNeeded { path: p.clone(), datum: name.clone() }),
+            },
+        };
+        match &geoid {
+            None => info!("DEM {}: heights are ellipsoidal (from {source_of_datum}); no conversion", p.display()),
+            Some(g) => info!(
+                "DEM {}: heights {datum:?} (from {source_of_datum}) converted to WGS84 ellipsoidal with geoid grid {}",
+                p.display(),
+                g.name
+            ),
+        }
+        out.push(DemSpec { info, nodata: band.no_data_value(), to_metres, geoid });
+    }
+    Ok(out)
+}
+
+fn union_text(boxes: &[trn_landmark::GeoBox]) -> String {
+    boxes
+        .iter()
+        .map(|b| {
+            format!(
+                "lon {:.4}..{:.4} lat {:.4}..{:.4}",
+                b.min_lon_deg, b.max_lon_deg, b.min_lat_deg, b.max_lat_deg
+            )
+        })
+        .collect::<Vec<_>>()
+        .join("; ")
+}
+
+fn check_overlap(orthos: &[&RasterInfo], dems: &[DemSpec]) -> Result<()> {
+    let any = orthos.iter().any(|o| dems.iter().any(|d| o.extent.intersection(&d.info.extent).is_some()));
+    if any {
+        return Ok(());
+    }
+    Err(BuildError::NoOverlap {
+        ortho: union_text(&orthos.iter().map(|o| o.extent).collect::<Vec<_>>()),
+        dem: union_text(&dems.iter().map(|d| d.info.extent).collect::<Vec<_>>()),
+    })
+}
+
+fn group_orthos(infos: Vec<(RasterInfo, Luminance)>, work: &Path) -> Result<Vec<OrthoGroup>> {
+    let mut buckets: Vec<Vec<(RasterInfo, Luminance)>> = Vec::new();
+    for (info, lum) in infos {
+        let same = |o: &(RasterInfo, Luminance)| {
+            o.0.srs_wkt == info.srs_wkt
+                && (o.0.to_crs.gt[1] - info.to_crs.gt[1]).abs() < 1e-9 * info.to_crs.gt[1].abs()
+                && (o.0.to_crs.gt[5] - info.to_crs.gt[5]).abs() < 1e-9 * info.to_crs.gt[5].abs()
+                && o.0.to_crs.gt[2] == 0.0
+                && info.to_crs.gt[2] == 0.0
+                && o.0.band_count == info.band_count
+                && o.1 == lum
+        };
+        match buckets.iter_mut().find(|b| same(&b[0])) {
+            Some(b) => b.push((info, lum)),
+            None => buckets.push(vec![(info, lum)]),
+        }
+    }
+    let mut groups = Vec::new();
+    for (i, b) in buckets.into_iter().enumerate() {
+        let files: Vec<PathBuf> = b.iter().map(|x| x.0.path.clone()).collect();
+        let (path, info) = if b.len() == 1 {
+            (b[0].0.path.clone(), b[0].0.clone())
+        } else {
+            // One VRT per mosaic: templates may straddle file seams.
+            let vrt = work.join(format!("ortho-mosaic-{i}.vrt"));
+            let dss = files.iter().map(|p| source::open(p)).collect::<Result<Vec<_>>>()?;
+            gdal::programs::raster::build_vrt(Some(&vrt), &dss, None).map_err(|e| BuildError::Read {
+                path: files[0].clone(),
+                reason: format!("cannot mosaic: {e}"),
+            })?;
+            let (_, info) = source::inspect(&vrt)?;
+            info!("mosaic of {} orthos: {}x{} px", files.len(), info.width, info.height);
+            (vrt, info)
+        };
+        groups.push(OrthoGroup { index: i as u32, path, info, lum: b[0].1.clone(), files });
+    }
+    Ok(groups)
+}
+
+/// Per-thread GDAL state for one group.
+struct Worker {
+    ortho: OrthoReader,
+    dem: DemSampler,
+    to_wgs: CoordTransform,
+    from_wgs: CoordTransform,
+}
+
+impl Worker {
+    fn new(g: &OrthoGroup, dems: &[DemSpec]) -> Result<Self> {
+        let ds = source::open(&g.path)?;
+        let srs = source::srs_of(&ds, &g.path)?;
+        let wgs = source::wgs84();
+        let err = |e: gdal::errors::GdalError| BuildError::BadRaster {
+            path: g.path.clone(),
+            reason: e.to_string(),
+        };
+        Ok(Self {
+            ortho: OrthoReader::open(&g.path, &g.lum)?,
+            dem: DemSampler::open(dems)?,
+            to_wgs: CoordTransform::new(&srs, &wgs).map_err(err)?,
+            from_wgs: CoordTransform::new(&wgs, &srs).map_err(err)?,
+        })
+    }
+}
+
+/// One template level as processed on a pyramid level of a group.
+#[derive(Clone, Copy)]
+struct LevelPlan {
+    level: u8,
+    /// Pyramid level of the group it runs on (2^p native pixels per pixel).
+    pyramid_level: usize,
+    gsd_m: f64,
+    select: SelectParams,
+}
+
+fn build_group(
+    opts: &BuildOptions,
+    g: &OrthoGroup,
+    dems: &[DemSpec],
+    base_gsd: f64,
+    levels: u8,
+    work: &Path,
+    cancel: &AtomicBool,
+) -> Result<(Vec<Template>, HashMap<Reject, usize>, usize)> {
+    let native = g.info.pixel_dx_m.max(g.info.pixel_dy_m);
+    // Pyramid level p whose pixels are at most as coarse as template level k.
+    let offset = ((base_gsd / native).log2() + 1e-9).floor().max(0.0) as usize;
+    let top = offset + levels as usize - 1;
+    let t = opts.template_size as f64;
+    let plan_for = |p: usize| -> Option<LevelPlan> {
+        let k = p.checked_sub(offset)?;
+        let gsd = base_gsd * 2f64.powi(k as i32);
+        let scale = 2f64.powi(p as i32);
+        let (px_w, px_h) = (g.info.pixel_dx_m * scale, g.info.pixel_dy_m * scale);
+        let win_w = (t * gsd / px_w).round().max(4.0) as usize;
+        let win_h = (t * gsd / px_h).round().max(4.0) as usize;
+        let sp = opts.spacing_px as f64 * gsd;
+        let r = (opts.search_radius_px as f64 * gsd / px_w.min(px_h)).round().max(2.0) as usize;
+        Some(LevelPlan {
+            level: k as u8,
+            pyramid_level: p,
+            gsd_m: gsd,
+            select: SelectParams {
+                win_w,
+                win_h,
+                cell_w: (sp / px_w).round().max(2.0) as usize,
+                cell_h: (sp / px_h).round().max(2.0) as usize,
+                per_cell: opts.per_cell,
+                min_shi_tomasi: opts.min_shi_tomasi,
+                min_contrast_std: opts.min_contrast_std,
+                max_saturated: opts.max_saturated,
+                search_radius: r,
+                max_second_peak: opts.max_second_peak,
+            },
+        })
+    };
+
+    // Tiles per pyramid level, for the progress bar.
+    let sizes: Vec<(usize, usize)> = (0..=top).map(|p| (g.info.width >> p, g.info.height >> p)).collect();
+    let tile_dims = |p: usize| -> (usize, usize) {
+        let (cw, ch) = plan_for(p).map(|l| (l.select.cell_w, l.select.cell_h)).unwrap_or((2, 2));
+        let round = |cell: usize, target: usize| {
+            let mut n = target.div_ceil(cell).max(1);
+            if (n * cell) % 2 == 1 {
+                n += 1;
+            }
+            n * cell
+        };
+        (round(cw, 1024), round(ch, 256))
+    };
+    let tiles_of = |p: usize| -> Vec<(usize, usize, usize, usize)> {
+        let (w, h) = sizes[p];
+        let (tw, th) = tile_dims(p);
+        let mut v = Vec::new();
+        let mut y = 0;
+        while y < h {
+            let mut x = 0;
+            while x < w {
+                v.push((x, (x + tw).min(w), y, (y + th).min(h)));
+                x += tw;
+            }
+            y += th;
+        }
+        v
+    };
+    let total: usize = (0..=top).map(|p| tiles_of(p).len()).sum();
+    let bar = ProgressBar::new(total as u64);
+    bar.set_style(
+        ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} tiles, {elapsed_precise} (eta {eta})")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    bar.set_message(format!("building {}", g.info.path.file_name().unwrap_or_default().to_string_lossy()));
+
+    let mut templates = Vec::new();
+    let rejects = Mutex::new(HashMap::<Reject, usize>::new());
+    let mut candidates = 0usize;
+    let mut prev: Option<LevelFile> = None;
+    for p in 0..=top {
+        let (w, h) = sizes[p];
+        let plan = plan_for(p);
+        let next = if p < top {
+            Some(LevelFile::create(work, &format!("g{}-p{}", g.index, p + 1), w / 2, h / 2)?)
+        } else {
+            None
+        };
+        let margin = plan
+            .map(|l| {
+                (l.select.win_w.max(l.select.win_h) as f64 * 0.75).ceil() as usize
+                    + l.select.search_radius
+                    + 4
+            })
+            .unwrap_or(0);
+        let tiles = tiles_of(p);
+        let results: Vec<Result<(Vec<Template>, usize)>> = tiles
+            .par_iter()
+            .map_init(
+                || Worker::new(g, dems),
+                |worker, &(x0, x1, y0, y1)| {
+                    if cancel.load(Ordering::Relaxed) {
+                        return Err(BuildError::Cancelled);
+                    }
+                    let worker = worker
+                        .as_ref()
+                        .map_err(|e| BuildError::Read { path: g.path.clone(), reason: e.to_string() })?;
+                    let (wx0, wy0) = (x0 as isize - margin as isize, y0 as isize - margin as isize);
+                    let (ww, wh) = (x1 - x0 + 2 * margin, y1 - y0 + 2 * margin);
+                    let win = match &prev {
+                        None => worker.ortho.read(wx0, wy0, ww, wh)?,
+                        Some(f) => f.read(wx0, wy0, ww, wh)?,
+                    };
+                    if let Some(next) = &next {
+                        let (cw, ch) = ((x1 - x0) & !1, (y1 - y0) & !1);
+                        let (lum, valid) = pyramid::downsample2(&win, margin, margin, cw, ch);
+                        let nw = (cw / 2).min(next.width.saturating_sub(x0 / 2));
+                        if nw > 0 && ch > 0 {
+                            let rows = (ch / 2).min(next.height.saturating_sub(y0 / 2));
+                            let (lum, valid) = crop_cols(&lum, &valid, cw / 2, nw, rows);
+                            next.write(x0 / 2, y0 / 2, nw, &lum, &valid)?;
+                        }
+                    }
+                    let out = match plan {
+                        Some(l) => {
+                            tile_templates(&win, margin, (x1 - x0, y1 - y0), &l, g, worker, opts, &rejects)
+                        }
+                        None => (Vec::new(), 0),
+                    };
+                    bar.inc(1);
+                    Ok(out)
+                },
+            )
+            .collect();
+        for r in results {
+            let (t, c) = r?;
+            templates.extend(t);
+            candidates += c;
+        }
+        if let Some(l) = plan {
+            info!(
+                "level {} (GSD {:.2} m): {} templates so far from {}",
+                l.level,
+                l.gsd_m,
+                templates.iter().filter(|t: &&Template| t.level == l.level).count(),
+                g.info.path.display()
+            );
+        }
+        prev = next;
+    }
+    bar.finish_and_clear();
+    Ok((templates, rejects.into_inner().unwrap_or_default(), candidates))
+}
+
+fn crop_cols(lum: &[f32], valid: &[u8], w: usize, nw: usize, rows: usize) -> (Vec<f32>, Vec<u8>) {
+    let mut l = Vec::with_capacity(nw * rows);
+    let mut v = Vec::with_capacity(nw * rows);
+    for r in 0..rows {
+        l.extend_from_slice(&lum[r * w..r * w + nw]);
+        v.extend_from_slice(&valid[r * w..r * w + nw]);
+    }
+    (l, v)
+}
+
+#[allow(clippy::too_many_arguments)]
+fn tile_templates(
+    win: &Window,
+    margin: usize,
+    core_size: (usize, usize),
+    plan: &LevelPlan,
+    g: &OrthoGroup,
+    worker: &Worker,
+    opts: &BuildOptions,
+    rejects: &Mutex<HashMap<Reject, usize>>,
+) -> (Vec<Template>, usize) {
+    let img = LumWindow { width: win.width, height: win.height, lum: &win.lum, valid: &win.valid };
+    let core = Core { x0: margin, x1: margin + core_size.0, y0: margin, y1: margin + core_size.1 };
+    let cands = select::select(&img, &plan.select, core);
+    let scale = 2f64.powi(plan.pyramid_level as i32);
+    let geo = WindowGeo { to_crs: g.info.to_crs, scale, to_wgs: &worker.to_wgs, from_wgs: &worker.from_wgs };
+    let ep = ExtractParams {
+        level: plan.level,
+        gsd_m: plan.gsd_m,
+        size_px: opts.template_size,
+        height_grid_n: opts.height_grid_n,
+        max_plane_residual_m: opts.max_relief_gsd * plan.gsd_m,
+        source: g.index,
+    };
+    let mut out = Vec::new();
+    let mut local: HashMap<Reject, usize> = HashMap::new();
+    for c in &cands {
+        match extract::extract(win, &geo, &worker.dem, c, &ep) {
+            Ok(t) => out.push(t),
+            Err(r) => *local.entry(r).or_default() += 1,
+        }
+    }
+    if !local.is_empty() {
+        let mut all = rejects.lock().unwrap_or_else(|e| e.into_inner());
+        for (k, v) in local {
+            *all.entry(k).or_default() += v;
+        }
+    }
+    (out, cands.len())
+}
+
+/// Keeps the most distinctive of templates of one level closer than half a cell
+/// (overlapping mosaics in different CRSs).
+fn dedupe(mut all: Vec<Template>, opts: &BuildOptions) -> Vec<Template> {
+    all.sort_by(|a, b| a.quality.second_peak_ncc.total_cmp(&b.quality.second_peak_ncc));
+    let mut kept: Vec<Template> = Vec::new();
+    let mut grid: HashMap<(u8, i64, i64), Vec<usize>> = HashMap::new();
+    for t in all {
+        let min_d = 0.5 * opts.spacing_px as f64 * t.gsd_m;
+        let (m_lat, m_lon) = trn_geodesy::metres_per_degree(t.center.lat_deg);
+        let cell = |v: f64, m: f64| (v * m / min_d).floor() as i64;
+        let (cy, cx) = (cell(t.center.lat_deg, m_lat), cell(t.center.lon_deg, m_lon));
+        let ecef = t.center_ecef();
+        let clash = (-1..=1).any(|dy| {
+            (-1..=1).any(|dx| {
+                grid.get(&(t.level, cy + dy, cx + dx))
+                    .is_some_and(|v| v.iter().any(|&i| kept[i].center_ecef().distance_m(&ecef) < min_d))
+            })
+        });
+        if !clash {
+            grid.entry((t.level, cy, cx)).or_default().push(kept.len());
+            kept.push(t);
+        }
+    }
+    kept
+}
+
+fn metadata(
+    opts: &BuildOptions,
+    groups: &[OrthoGroup],
+    dems: &[DemSpec],
+    base_gsd: f64,
+    levels: u8,
+) -> Vec<(String, serde_json::Value)> {
+    use serde_json::json;
+    let sources: Vec<_> = groups
+        .iter()
+        .map(|g| {
+            json!({
+                "index": g.index,
+                "files": g.files,
+                "width": g.info.width, "height": g.info.height,
+                "band_type": g.info.band_type,
+                "luminance_bands": g.lum.bands,
+                "pixel_dx_m": g.info.pixel_dx_m, "pixel_dy_m": g.info.pixel_dy_m,
+                "crs_wkt": g.info.srs_wkt,
+            })
+        })
+        .collect();
+    let dem_meta: Vec<_> = dems
+        .iter()
+        .map(|d| {
+            json!({
+                "file": d.info.path,
+                "crs_wkt": d.info.srs_wkt,
+                "pixel_dx_m": d.info.pixel_dx_m, "pixel_dy_m": d.info.pixel_dy_m,
+                "to_metres": d.to_metres,
+                "vertical_conversion": d.geoid.as_ref().map(|g| format!("orthometric + geoid grid {}", g.name))
+                    .unwrap_or_else(|| "none (ellipsoidal)".into()),
+            })
+        })
+        .collect();
+    let level_list: Vec<_> =
+        (0..levels).map(|k| json!({"level": k, "gsd_m": base_gsd * 2f64.powi(k as i32)})).collect();
+    let created =
+        std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs()).unwrap_or(0);
+    vec![
+        ("orthos".into(), json!(sources)),
+        ("dems".into(), json!(dem_meta)),
+        ("height_reference".into(), json!("WGS84 ellipsoid")),
+        ("parameters".into(), serde_json::to_value(opts).unwrap_or_default()),
+        ("base_gsd_m".into(), json!(base_gsd)),
+        ("levels".into(), json!(level_list)),
+        ("created_unix".into(), json!(created)),
+        ("trn_version".into(), json!(env!("CARGO_PKG_VERSION"))),
+    ]
+}

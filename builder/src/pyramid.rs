@@ -1,0 +1,190 @@
+//! Luminance pyramid read in windows: level 0 straight from the ortho through
+//! GDAL, each coarser level from a raw temporary file that the level below
+//! writes (2x2 box filter), so memory stays bounded by the window size.
+
+use std::fs::File;
+use std::os::unix::fs::FileExt;
+use std::path::{Path, PathBuf};
+
+use gdal::Dataset;
+
+use crate::error::{BuildError, Result};
+use crate::source::Luminance;
+
+/// A window of luminance (0..255) with validity, row-major.
+pub struct Window {
+    /// Top-left pixel of the window in the level's pixel grid (may be negative).
+    pub x0: isize,
+    pub y0: isize,
+    pub width: usize,
+    pub height: usize,
+    pub lum: Vec<f32>,
+    pub valid: Vec<u8>,
+}
+
+/// Level 0: reads an ortho (or a VRT mosaic) through GDAL.
+pub struct OrthoReader {
+    path: PathBuf,
+    ds: Dataset,
+    lum: Luminance,
+    nodata: Vec<Option<f64>>,
+    /// Read the mask band of band 1 (alpha, per-dataset mask).
+    use_mask: bool,
+    width: usize,
+    height: usize,
+}
+
+impl OrthoReader {
+    pub fn open(path: &Path, lum: &Luminance) -> Result<Self> {
+        let ds = crate::source::open(path)?;
+        let (width, height) = ds.raster_size();
+        let rerr = |e: gdal::errors::GdalError| BuildError::Read { path: path.into(), reason: e.to_string() };
+        let mut nodata = Vec::new();
+        for &(b, _) in &lum.bands {
+            nodata.push(ds.rasterband(b).map_err(rerr)?.no_data_value());
+        }
+        let flags = ds.rasterband(lum.bands[0].0).map_err(rerr)?.mask_flags().map_err(rerr)?;
+        let use_mask = !flags.is_all_valid() && !flags.is_nodata();
+        Ok(Self { path: path.into(), ds, lum: lum.clone(), nodata, use_mask, width, height })
+    }
+
+    /// Reads a window; pixels outside the raster are invalid.
+    pub fn read(&self, x0: isize, y0: isize, width: usize, height: usize) -> Result<Window> {
+        let mut lum = vec![0f32; width * height];
+        let mut valid = vec![0u8; width * height];
+        let (rx0, ry0) = (x0.max(0), y0.max(0));
+        let rx1 = (x0 + width as isize).min(self.width as isize);
+        let ry1 = (y0 + height as isize).min(self.height as isize);
+        if rx1 > rx0 && ry1 > ry0 {
+            let (rw, rh) = ((rx1 - rx0) as usize, (ry1 - ry0) as usize);
+            let rerr = |e: gdal::errors::GdalError| BuildError::Read {
+                path: self.path.clone(),
+                reason: e.to_string(),
+            };
+            let mut acc = vec![0f32; rw * rh];
+            let mut ok = vec![1u8; rw * rh];
+            let mut buf = vec![0f32; rw * rh];
+            for (k, &(b, wgt)) in self.lum.bands.iter().enumerate() {
+                let band = self.ds.rasterband(b).map_err(rerr)?;
+                band.read_into_slice::<f32>((rx0, ry0), (rw, rh), (rw, rh), &mut buf, None).map_err(rerr)?;
+                if let Some(nd) = self.nodata[k] {
+                    let nd = nd as f32;
+                    for (o, &v) in ok.iter_mut().zip(&buf) {
+                        if v == nd || v.is_nan() {
+                            *o = 0;
+                        }
+                    }
+                }
+                for (a, &v) in acc.iter_mut().zip(&buf) {
+                    *a += wgt * v;
+                }
+            }
+            if self.use_mask {
+                let band = self.ds.rasterband(self.lum.bands[0].0).map_err(rerr)?;
+                let mask = band.open_mask_band().map_err(rerr)?;
+                let mut m = vec![0u8; rw * rh];
+                mask.read_into_slice::<u8>((rx0, ry0), (rw, rh), (rw, rh), &mut m, None).map_err(rerr)?;
+                for (o, &v) in ok.iter_mut().zip(&m) {
+                    if v == 0 {
+                        *o = 0;
+                    }
+                }
+            }
+            let (off, sc) = (self.lum.offset, self.lum.scale);
+            for r in 0..rh {
+                let dst = ((ry0 - y0) as usize + r) * width + (rx0 - x0) as usize;
+                for c in 0..rw {
+                    let v = (acc[r * rw + c] - off) * sc;
+                    lum[dst + c] = v.clamp(0.0, 255.0);
+                    valid[dst + c] = ok[r * rw + c];
+                }
+            }
+        }
+        Ok(Window { x0, y0, width, height, lum, valid })
+    }
+}
+
+/// A pyramid level stored as two raw files (f32 luminance, u8 validity).
+pub struct LevelFile {
+    pub width: usize,
+    pub height: usize,
+    path: PathBuf,
+    lum: File,
+    valid: File,
+}
+
+impl LevelFile {
+    pub fn create(dir: &Path, name: &str, width: usize, height: usize) -> Result<Self> {
+        let io = |p: &Path| {
+            let p = p.to_path_buf();
+            move |source| BuildError::Io { path: p.clone(), source }
+        };
+        let lp = dir.join(format!("{name}.lum"));
+        let vp = dir.join(format!("{name}.valid"));
+        let lum =
+            File::options().read(true).write(true).create(true).truncate(true).open(&lp).map_err(io(&lp))?;
+        let valid =
+            File::options().read(true).write(true).create(true).truncate(true).open(&vp).map_err(io(&vp))?;
+        lum.set_len((width * height * 4) as u64).map_err(io(&lp))?;
+        valid.set_len((width * height) as u64).map_err(io(&vp))?;
+        Ok(Self { width, height, path: lp, lum, valid })
+    }
+
+    fn io_err(&self, source: std::io::Error) -> BuildError {
+        BuildError::Io { path: self.path.clone(), source }
+    }
+
+    /// Writes a block whose rows are `width` long, at (x0, y0).
+    pub fn write(&self, x0: usize, y0: usize, width: usize, lum: &[f32], valid: &[u8]) -> Result<()> {
+        let rows = lum.len() / width.max(1);
+        for r in 0..rows {
+            let off = ((y0 + r) * self.width + x0) as u64;
+            let bytes: Vec<u8> =
+                lum[r * width..(r + 1) * width].iter().flat_map(|v| v.to_le_bytes()).collect();
+            self.lum.write_all_at(&bytes, off * 4).map_err(|e| self.io_err(e))?;
+            self.valid.write_all_at(&valid[r * width..(r + 1) * width], off).map_err(|e| self.io_err(e))?;
+        }
+        Ok(())
+    }
+
+    pub fn read(&self, x0: isize, y0: isize, width: usize, height: usize) -> Result<Window> {
+        let mut lum = vec![0f32; width * height];
+        let mut valid = vec![0u8; width * height];
+        let (rx0, rx1) = (x0.max(0), (x0 + width as isize).min(self.width as isize));
+        if rx1 > rx0 {
+            let rw = (rx1 - rx0) as usize;
+            let mut bytes = vec![0u8; rw * 4];
+            for r in 0..height {
+                let y = y0 + r as isize;
+                if y < 0 || y >= self.height as isize {
+                    continue;
+                }
+                let off = (y as usize * self.width + rx0 as usize) as u64;
+                let dst = r * width + (rx0 - x0) as usize;
+                self.lum.read_exact_at(&mut bytes, off * 4).map_err(|e| self.io_err(e))?;
+                for (c, ch) in bytes.chunks_exact(4).enumerate() {
+                    lum[dst + c] = f32::from_le_bytes([ch[0], ch[1], ch[2], ch[3]]);
+                }
+                self.valid.read_exact_at(&mut valid[dst..dst + rw], off).map_err(|e| self.io_err(e))?;
+            }
+        }
+        Ok(Window { x0, y0, width, height, lum, valid })
+    }
+}
+
+/// 2x2 box reduction of the window region starting at window pixel (cx, cy),
+/// `w x h` pixels (even); a coarse pixel is valid when all four are.
+pub fn downsample2(win: &Window, cx: usize, cy: usize, w: usize, h: usize) -> (Vec<f32>, Vec<u8>) {
+    let (ow, oh) = (w / 2, h / 2);
+    let mut lum = vec![0f32; ow * oh];
+    let mut valid = vec![0u8; ow * oh];
+    for r in 0..oh {
+        for c in 0..ow {
+            let i = (cy + 2 * r) * win.width + cx + 2 * c;
+            let j = i + win.width;
+            lum[r * ow + c] = 0.25 * (win.lum[i] + win.lum[i + 1] + win.lum[j] + win.lum[j + 1]);
+            valid[r * ow + c] = win.valid[i] & win.valid[i + 1] & win.valid[j] & win.valid[j + 1];
+        }
+    }
+    (lum, valid)
+}

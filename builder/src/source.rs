@@ -1,0 +1,319 @@
+//! Input rasters: opening and checking them, their footprints on WGS84, how an
+//! ortho's bands become luminance, and what vertical datum a DEM uses.
+
+use std::path::{Path, PathBuf};
+
+use gdal::raster::GdalDataType;
+use gdal::spatial_ref::{AxisMappingStrategy, CoordTransform, SpatialRef};
+use gdal::Dataset;
+use trn_geodesy::metres_per_degree;
+use trn_landmark::GeoBox;
+
+use crate::error::{BuildError, Result};
+
+/// GDAL's affine pixel -> CRS transform; (0, 0) is the top-left corner of the top-left pixel.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PixelToCrs {
+    pub gt: [f64; 6],
+}
+
+impl PixelToCrs {
+    /// CRS coordinates of pixel-grid position (col, row) (corner convention).
+    pub fn apply(&self, col: f64, row: f64) -> (f64, f64) {
+        let g = &self.gt;
+        (g[0] + col * g[1] + row * g[2], g[3] + col * g[4] + row * g[5])
+    }
+
+    /// Inverse: CRS coordinates to pixel-grid position (corner convention).
+    pub fn invert(&self, x: f64, y: f64) -> (f64, f64) {
+        let g = &self.gt;
+        let det = g[1] * g[5] - g[2] * g[4];
+        let (dx, dy) = (x - g[0], y - g[3]);
+        ((dx * g[5] - dy * g[2]) / det, (dy * g[1] - dx * g[4]) / det)
+    }
+}
+
+/// An opened, checked raster (ortho or DEM).
+#[derive(Clone, Debug)]
+pub struct RasterInfo {
+    pub path: PathBuf,
+    pub width: usize,
+    pub height: usize,
+    pub band_count: usize,
+    pub band_type: String,
+    pub to_crs: PixelToCrs,
+    pub srs_wkt: String,
+    /// Footprint on WGS84 (densified edges).
+    pub extent: GeoBox,
+    /// Pixel size on the ground (m) at the raster's centre, along columns and rows.
+    pub pixel_dx_m: f64,
+    pub pixel_dy_m: f64,
+}
+
+pub fn wgs84() -> SpatialRef {
+    let mut srs = SpatialRef::from_epsg(4326).expect("EPSG:4326 is in every PROJ database");
+    srs.set_axis_mapping_strategy(AxisMappingStrategy::TraditionalGisOrder);
+    srs
+}
+
+pub fn open(path: &Path) -> Result<Dataset> {
+    if !path.exists() {
+        return Err(BuildError::Open { path: path.into(), reason: "no such file".into() });
+    }
+    Dataset::open(path).map_err(|e| BuildError::Open { path: path.into(), reason: e.to_string() })
+}
+
+pub fn srs_of(ds: &Dataset, path: &Path) -> Result<SpatialRef> {
+    let mut srs = ds.spatial_ref().map_err(|_| BuildError::NoGeoreference { path: path.into() })?;
+    if srs.to_wkt().map(|w| w.is_empty()).unwrap_or(true) {
+        return Err(BuildError::NoGeoreference { path: path.into() });
+    }
+    srs.set_axis_mapping_strategy(AxisMappingStrategy::TraditionalGisOrder);
+    Ok(srs)
+}
+
+/// Opens a raster and checks georeferencing, computing its WGS84 footprint.
+pub fn inspect(path: &Path) -> Result<(Dataset, RasterInfo)> {
+    let ds = open(path)?;
+    let (width, height) = ds.raster_size();
+    if width == 0 || height == 0 || ds.raster_count() == 0 {
+        return Err(BuildError::BadRaster {
+            path: path.into(),
+            reason: "raster has no pixels or no bands".into(),
+        });
+    }
+    let gt = ds.geo_transform().map_err(|_| BuildError::NoGeoreference { path: path.into() })?;
+    if gt == [0.0, 1.0, 0.0, 0.0, 0.0, 1.0] {
+        return Err(BuildError::NoGeoreference { path: path.into() });
+    }
+    let srs = srs_of(&ds, path)?;
+    let to_wgs = CoordTransform::new(&srs, &wgs84())
+        .map_err(|e| BuildError::BadRaster { path: path.into(), reason: format!("CRS not usable: {e}") })?;
+    let to_crs = PixelToCrs { gt };
+    // Densified outline: UTM edges are curved in lat/lon.
+    let n = 32;
+    let mut xs = Vec::new();
+    let mut ys = Vec::new();
+    for i in 0..=n {
+        let f = i as f64 / n as f64;
+        for (c, r) in [
+            (f * width as f64, 0.0),
+            (f * width as f64, height as f64),
+            (0.0, f * height as f64),
+            (width as f64, f * height as f64),
+        ] {
+            let (x, y) = to_crs.apply(c, r);
+            xs.push(x);
+            ys.push(y);
+        }
+    }
+    let mut zs = vec![0.0; xs.len()];
+    to_wgs.transform_coords(&mut xs, &mut ys, &mut zs).map_err(|e| BuildError::BadRaster {
+        path: path.into(),
+        reason: format!("cannot transform to WGS84: {e}"),
+    })?;
+    let extent = GeoBox::around(xs.iter().copied().zip(ys.iter().copied()))
+        .ok_or_else(|| BuildError::BadRaster { path: path.into(), reason: "empty outline".into() })?;
+    if !(extent.min_lat_deg >= -90.0 && extent.max_lat_deg <= 90.0 && extent.min_lon_deg >= -360.0) {
+        return Err(BuildError::BadRaster {
+            path: path.into(),
+            reason: format!("footprint out of range: {extent:?}"),
+        });
+    }
+    // Ground pixel size at the centre, from the transform of a one-pixel step.
+    let (cc, cr) = (width as f64 / 2.0, height as f64 / 2.0);
+    let pts = [to_crs.apply(cc, cr), to_crs.apply(cc + 1.0, cr), to_crs.apply(cc, cr + 1.0)];
+    let mut px: Vec<f64> = pts.iter().map(|p| p.0).collect();
+    let mut py: Vec<f64> = pts.iter().map(|p| p.1).collect();
+    let mut pz = vec![0.0; 3];
+    to_wgs.transform_coords(&mut px, &mut py, &mut pz).map_err(|e| BuildError::BadRaster {
+        path: path.into(),
+        reason: format!("cannot transform to WGS84: {e}"),
+    })?;
+    let (m_lat, m_lon) = metres_per_degree(py[0]);
+    let step = |i: usize| ((px[i] - px[0]) * m_lon).hypot((py[i] - py[0]) * m_lat);
+    let (pixel_dx_m, pixel_dy_m) = (step(1), step(2));
+    let band_type = ds.rasterband(1).map(|b| b.band_type().name()).unwrap_or_default();
+    let info = RasterInfo {
+        path: path.into(),
+        width,
+        height,
+        band_count: ds.raster_count(),
+        band_type,
+        to_crs,
+        srs_wkt: srs.to_wkt().unwrap_or_default(),
+        extent,
+        pixel_dx_m,
+        pixel_dy_m,
+    };
+    Ok((ds, info))
+}
+
+/// Fails when GDAL finds no valid pixel in band 1 (approximate statistics read
+/// an overview or a sample, not the whole file).
+pub fn check_not_all_nodata(ds: &Dataset, path: &Path) -> Result<()> {
+    let band = ds.rasterband(1).map_err(|e| BuildError::Read { path: path.into(), reason: e.to_string() })?;
+    match band.compute_raster_min_max(true) {
+        Ok(mm) if mm.min.is_finite() && mm.max.is_finite() => Ok(()),
+        _ => {
+            // The approximate pass may miss a small valid area: make sure with an exact one.
+            match band.compute_raster_min_max(false) {
+                Ok(mm) if mm.min.is_finite() && mm.max.is_finite() => Ok(()),
+                _ => Err(BuildError::AllNodata { path: path.into() }),
+            }
+        }
+    }
+}
+
+/// How an ortho's bands are combined into one luminance channel scaled to 0..255.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Luminance {
+    /// (1-based band index, weight).
+    pub bands: Vec<(usize, f32)>,
+    /// lum = (sum(w_i * band_i) - offset) * scale
+    pub offset: f32,
+    pub scale: f32,
+    /// Band used for the validity mask when it is an alpha band.
+    pub alpha_band: Option<usize>,
+}
+
+/// Rec. 601 luma weights.
+const LUMA_RGB: [f32; 3] = [0.299, 0.587, 0.114];
+
+/// Decides the band combination: 1 band grey, 2 grey + alpha, 3 RGB, 4 RGB + alpha
+/// (or RGB + another band); more bands need `--ortho-bands`.
+pub fn luminance_for(ds: &Dataset, info: &RasterInfo, bands_opt: Option<&[usize]>) -> Result<Luminance> {
+    use gdal::raster::ColorInterpretation as CI;
+    let path = &info.path;
+    let n = info.band_count;
+    let interp: Vec<CI> = (1..=n)
+        .map(|b| ds.rasterband(b).map(|x| x.color_interpretation()).unwrap_or(CI::Undefined))
+        .collect();
+    let alpha_band = interp.iter().position(|c| *c == CI::AlphaBand).map(|i| i + 1);
+    let chosen: Vec<usize> = match bands_opt {
+        Some(b) => {
+            if let Some(&bad) = b.iter().find(|&&i| i == 0 || i > n) {
+                return Err(BuildError::Option {
+                    option: "--ortho-bands",
+                    reason: format!("band {bad} does not exist in {} ({n} bands)", path.display()),
+                });
+            }
+            if b.len() != 1 && b.len() != 3 {
+                return Err(BuildError::Option { option: "--ortho-bands", reason: "give 1 band (grey) or 3 (red,green,blue)".into() });
+            }
+            b.to_vec()
+        }
+        None => match (n, alpha_band) {
+            (1, _) => vec![1],
+            (2, Some(2)) | (2, None) => vec![1],
+            (3, _) => vec![1, 2, 3],
+            (4, _) => {
+                let find = |c: CI| interp.iter().position(|x| *x == c).map(|i| i + 1);
+                match (find(CI::RedBand), find(CI::GreenBand), find(CI::BlueBand)) {
+                    (Some(r), Some(g), Some(b)) => vec![r, g, b],
+                    _ => vec![1, 2, 3],
+                }
+            }
+            _ => {
+                return Err(BuildError::BadRaster {
+                    path: path.clone(),
+                    reason: format!(
+                        "{n} bands: say which make the luminance with --ortho-bands (one grey band, or red,green,blue, e.g. 3,2,1)"
+                    ),
+                })
+            }
+        },
+    };
+    let weights: Vec<(usize, f32)> = if chosen.len() == 1 {
+        vec![(chosen[0], 1.0)]
+    } else {
+        chosen.iter().zip(LUMA_RGB).map(|(&b, w)| (b, w)).collect()
+    };
+    // 8-bit data is used as it is; wider types are stretched from their range.
+    let (offset, scale) = if info.band_type == GdalDataType::UInt8.name() {
+        (0.0, 1.0)
+    } else {
+        let mut lo = 0f64;
+        let mut hi = 0f64;
+        for &(b, w) in &weights {
+            let band = ds
+                .rasterband(b)
+                .map_err(|e| BuildError::Read { path: path.clone(), reason: e.to_string() })?;
+            let mm = band
+                .compute_raster_min_max(true)
+                .map_err(|_| BuildError::AllNodata { path: path.clone() })?;
+            lo += w as f64 * mm.min;
+            hi += w as f64 * mm.max;
+        }
+        if hi <= lo {
+            return Err(BuildError::BadRaster {
+                path: path.clone(),
+                reason: "constant image: no texture".into(),
+            });
+        }
+        (lo as f32, (255.0 / (hi - lo)) as f32)
+    };
+    Ok(Luminance { bands: weights, offset, scale, alpha_band })
+}
+
+/// Vertical datum of DEM heights.
+#[derive(Clone, Debug, PartialEq)]
+pub enum VerticalDatum {
+    Ellipsoid,
+    /// EGM96 geoid heights (EPSG:5773).
+    Egm96,
+    /// Heights above a geoid given by a grid file (NAVD88 with GEOID18, EGM2008, ...).
+    Geoid {
+        name: String,
+    },
+}
+
+/// The vertical CRS a raster's compound CRS names, as (name, EPSG code).
+pub fn vertical_crs_of(wkt: &str) -> Option<(String, Option<u32>)> {
+    let start = wkt.find("VERT_CS[").or_else(|| wkt.find("VERTCRS["))?;
+    let rest = &wkt[start..];
+    let name = rest.split('"').nth(1).unwrap_or("").to_string();
+    // The vertical CRS's own AUTHORITY is its last one before the block closes.
+    let mut depth = 0i32;
+    let mut end = rest.len();
+    for (i, ch) in rest.char_indices() {
+        match ch {
+            '[' => depth += 1,
+            ']' => {
+                depth -= 1;
+                if depth == 0 {
+                    end = i;
+                    break;
+                }
+            }
+            _ => {}
+        }
+    }
+    let block = &rest[..end];
+    let code = block
+        .rfind("AUTHORITY[\"EPSG\",\"")
+        .map(|i| &block[i + 18..])
+        .or_else(|| block.rfind("ID[\"EPSG\",").map(|i| &block[i + 10..]))
+        .and_then(|s| {
+            s.trim_matches('"').split(|c: char| !c.is_ascii_digit()).next().and_then(|d| d.parse().ok())
+        });
+    Some((name, code))
+}
+
+/// The datum the DEM declares in its CRS, if any.
+pub fn declared_vertical(wkt: &str) -> Option<VerticalDatum> {
+    let (name, code) = vertical_crs_of(wkt)?;
+    let lname = name.to_lowercase();
+    Some(match code {
+        Some(5773) => VerticalDatum::Egm96,
+        _ if lname.contains("egm96") => VerticalDatum::Egm96,
+        _ if lname.contains("ellipsoid") => VerticalDatum::Ellipsoid,
+        _ => VerticalDatum::Geoid { name: code.map(|c| format!("EPSG:{c} ({name})")).unwrap_or(name) },
+    })
+}
+
+/// Geographic 3D CRSs (EPSG:4979 style) carry ellipsoidal heights.
+pub fn is_ellipsoidal_3d(srs_wkt: &str) -> bool {
+    srs_wkt.contains("GEOGCRS") && srs_wkt.contains("ellipsoidal height")
+        || srs_wkt.contains("\"EPSG\",\"4979\"")
+}

@@ -1,0 +1,238 @@
+//! Landmark types shared by the builder, the store, the server and the navigator.
+//!
+//! The main type is [`Template`]: a small north-up image patch resampled on the
+//! local tangent plane at its centre, 3D-referenced on the WGS84 ellipsoid, with
+//! the terrain geometry (a plane fit and a coarse height grid) the navigator needs
+//! to predict it into a camera image. Pure data, no I/O.
+
+use nalgebra::Vector3;
+use serde::{Deserialize, Serialize};
+use trn_geodesy::{Ecef, Enu, Geodetic, LocalFrame};
+
+/// A box in geodetic longitude/latitude (degrees, WGS84). `min_lon > max_lon` means the
+/// box crosses the antimeridian.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct GeoBox {
+    pub min_lon_deg: f64,
+    pub min_lat_deg: f64,
+    pub max_lon_deg: f64,
+    pub max_lat_deg: f64,
+}
+
+impl GeoBox {
+    pub fn new(min_lon_deg: f64, min_lat_deg: f64, max_lon_deg: f64, max_lat_deg: f64) -> Self {
+        Self { min_lon_deg, min_lat_deg, max_lon_deg, max_lat_deg }
+    }
+
+    /// The smallest box holding all points (no antimeridian crossing).
+    pub fn around(points: impl IntoIterator<Item = (f64, f64)>) -> Option<Self> {
+        let mut it = points.into_iter();
+        let (lon, lat) = it.next()?;
+        let mut b = Self::new(lon, lat, lon, lat);
+        for (lon, lat) in it {
+            b.min_lon_deg = b.min_lon_deg.min(lon);
+            b.max_lon_deg = b.max_lon_deg.max(lon);
+            b.min_lat_deg = b.min_lat_deg.min(lat);
+            b.max_lat_deg = b.max_lat_deg.max(lat);
+        }
+        Some(b)
+    }
+
+    pub fn crosses_antimeridian(&self) -> bool {
+        self.min_lon_deg > self.max_lon_deg
+    }
+
+    /// Splits an antimeridian-crossing box into two ordinary boxes.
+    pub fn split_antimeridian(&self) -> Vec<GeoBox> {
+        if self.crosses_antimeridian() {
+            vec![
+                GeoBox::new(self.min_lon_deg, self.min_lat_deg, 180.0, self.max_lat_deg),
+                GeoBox::new(-180.0, self.min_lat_deg, self.max_lon_deg, self.max_lat_deg),
+            ]
+        } else {
+            vec![*self]
+        }
+    }
+
+    /// Closed-interval intersection test, antimeridian aware on both sides.
+    pub fn intersects(&self, other: &GeoBox) -> bool {
+        self.split_antimeridian().iter().any(|a| {
+            other.split_antimeridian().iter().any(|b| {
+                a.min_lon_deg <= b.max_lon_deg
+                    && b.min_lon_deg <= a.max_lon_deg
+                    && a.min_lat_deg <= b.max_lat_deg
+                    && b.min_lat_deg <= a.max_lat_deg
+            })
+        })
+    }
+
+    pub fn intersection(&self, other: &GeoBox) -> Option<GeoBox> {
+        let b = GeoBox::new(
+            self.min_lon_deg.max(other.min_lon_deg),
+            self.min_lat_deg.max(other.min_lat_deg),
+            self.max_lon_deg.min(other.max_lon_deg),
+            self.max_lat_deg.min(other.max_lat_deg),
+        );
+        (b.min_lon_deg < b.max_lon_deg && b.min_lat_deg < b.max_lat_deg).then_some(b)
+    }
+
+    pub fn contains(&self, lon_deg: f64, lat_deg: f64) -> bool {
+        self.split_antimeridian().iter().any(|b| {
+            lon_deg >= b.min_lon_deg
+                && lon_deg <= b.max_lon_deg
+                && lat_deg >= b.min_lat_deg
+                && lat_deg <= b.max_lat_deg
+        })
+    }
+}
+
+/// Terrain under a template, relative to its local tangent frame (ENU at the centre).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TerrainPatch {
+    /// Unit normal of the least-squares plane through the terrain, in the ENU frame.
+    pub plane_normal_enu: [f64; 3],
+    /// RMS distance of the terrain samples from that plane (m): how far the
+    /// planar template model is off.
+    pub plane_residual_rms_m: f64,
+    /// Heights (m, relative to the centre's ellipsoidal height) on an `n x n`
+    /// grid spanning the template footprint, row 0 north, column 0 west.
+    pub height_grid: HeightGrid,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct HeightGrid {
+    pub n: u32,
+    /// Grid spacing on the tangent plane (m).
+    pub spacing_m: f64,
+    pub heights_m: Vec<f32>,
+}
+
+impl HeightGrid {
+    /// Bilinear height (m, relative to the centre) at a tangent-plane offset.
+    pub fn height_at(&self, east_m: f64, north_m: f64) -> f64 {
+        let n = self.n as usize;
+        if n == 0 || self.heights_m.len() != n * n {
+            return 0.0;
+        }
+        let half = (n as f64 - 1.0) / 2.0;
+        let col = (east_m / self.spacing_m + half).clamp(0.0, n as f64 - 1.0);
+        let row = (half - north_m / self.spacing_m).clamp(0.0, n as f64 - 1.0);
+        let (c0, r0) = (col.floor() as usize, row.floor() as usize);
+        let (c1, r1) = ((c0 + 1).min(n - 1), (r0 + 1).min(n - 1));
+        let (fc, fr) = (col - c0 as f64, row - r0 as f64);
+        let h = |r: usize, c: usize| self.heights_m[r * n + c] as f64;
+        (h(r0, c0) * (1.0 - fc) + h(r0, c1) * fc) * (1.0 - fr)
+            + (h(r1, c0) * (1.0 - fc) + h(r1, c1) * fc) * fr
+    }
+}
+
+/// How good a landmark the template is: the builder's selection scores.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TemplateQuality {
+    /// Shi-Tomasi strength: smaller eigenvalue of the mean structure tensor,
+    /// in (grey levels / pixel)^2.
+    pub shi_tomasi: f32,
+    /// Standard deviation of the template's grey levels.
+    pub contrast_std: f32,
+    /// Highest normalised cross-correlation of the template against its own
+    /// surroundings away from the true position (lower is more distinctive).
+    pub second_peak_ncc: f32,
+}
+
+/// One landmark: a north-up image template on the local tangent plane.
+///
+/// Pixel `(col, row)` (centre convention as the flight format: `(0, 0)` is the
+/// centre of the top-left pixel) shows the terrain at the tangent-plane offset
+/// `east = (col - (w - 1) / 2) * gsd`, `north = ((h - 1) / 2 - row) * gsd` from
+/// the centre, at the height the [`TerrainPatch`] gives there.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Template {
+    /// Database id (0 before it is stored).
+    pub id: i64,
+    /// Pyramid level: ground sample distance = base GSD * 2^level.
+    pub level: u8,
+    pub gsd_m: f64,
+    pub width_px: u32,
+    pub height_px: u32,
+    /// Centre, WGS84 ellipsoidal height.
+    pub center: Geodetic,
+    pub footprint: GeoBox,
+    pub terrain: TerrainPatch,
+    pub quality: TemplateQuality,
+    /// Index into the build's list of ortho sources.
+    pub source: u32,
+    /// Grey levels, row-major, row 0 north.
+    pub pixels: Vec<u8>,
+}
+
+impl Template {
+    pub fn center_ecef(&self) -> Ecef {
+        self.center.to_ecef()
+    }
+
+    pub fn local_frame(&self) -> LocalFrame {
+        LocalFrame::at(self.center)
+    }
+
+    /// Tangent-plane offset of a template pixel (col, row) from the centre.
+    pub fn pixel_offset_enu(&self, col: f64, row: f64) -> Enu {
+        let e = (col - (self.width_px as f64 - 1.0) / 2.0) * self.gsd_m;
+        let n = ((self.height_px as f64 - 1.0) / 2.0 - row) * self.gsd_m;
+        Enu::new(e, n, self.terrain.height_grid.height_at(e, n))
+    }
+
+    /// ECEF position of the terrain seen at template pixel (col, row).
+    pub fn pixel_ecef(&self, col: f64, row: f64) -> Ecef {
+        self.local_frame().to_ecef(self.pixel_offset_enu(col, row))
+    }
+
+    pub fn plane_normal_enu(&self) -> Vector3<f64> {
+        Vector3::from(self.terrain.plane_normal_enu)
+    }
+
+    /// Corners of the footprint (NW, NE, SE, SW) on the tangent plane, as geodetic points.
+    pub fn footprint_corners(&self) -> [Geodetic; 4] {
+        let frame = self.local_frame();
+        let (w, h) = (self.width_px as f64 - 0.5, self.height_px as f64 - 0.5);
+        [(-0.5, -0.5), (w, -0.5), (w, h), (-0.5, h)].map(|(c, r)| {
+            let enu = self.pixel_offset_enu(c, r);
+            frame.to_ecef(enu).to_geodetic()
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn geobox_antimeridian_split_and_intersect() {
+        let b = GeoBox::new(179.0, -1.0, -179.0, 1.0);
+        assert!(b.crosses_antimeridian());
+        assert_eq!(b.split_antimeridian().len(), 2);
+        assert!(b.intersects(&GeoBox::new(179.5, 0.0, 179.9, 0.5)));
+        assert!(b.intersects(&GeoBox::new(-179.5, 0.0, -179.2, 0.5)));
+        assert!(!b.intersects(&GeoBox::new(0.0, 0.0, 1.0, 0.5)));
+        assert!(b.contains(-179.5, 0.0));
+        assert!(!b.contains(0.0, 0.0));
+    }
+
+    #[test]
+    fn height_grid_bilinear_matches_plane() {
+        // h = 0.1 e - 0.2 n is reproduced exactly by bilinear interpolation.
+        let n = 5u32;
+        let spacing = 10.0;
+        let mut heights = Vec::new();
+        for r in 0..n {
+            for c in 0..n {
+                let e = (c as f64 - 2.0) * spacing;
+                let nn = (2.0 - r as f64) * spacing;
+                heights.push((0.1 * e - 0.2 * nn) as f32);
+            }
+        }
+        let g = HeightGrid { n, spacing_m: spacing, heights_m: heights };
+        for (e, nn) in [(0.0, 0.0), (3.3, -7.1), (-19.0, 19.0), (12.5, 4.0)] {
+            assert!((g.height_at(e, nn) - (0.1 * e - 0.2 * nn)).abs() < 1e-5);
+        }
+    }
+}

@@ -1,0 +1,110 @@
+-- trn landmark schema on top of the GeoPackage core (gpkg_core.sql). Run once by
+-- DbWriter::create. Our own schema version is the 'schema_version' row of
+-- trn_metadata (user_version belongs to GeoPackage); bump SCHEMA_VERSION in lib.rs
+-- with every change here.
+
+-- Build metadata: one JSON document per key.
+CREATE TABLE trn_metadata (
+    key TEXT NOT NULL PRIMARY KEY,
+    value TEXT NOT NULL
+);
+
+-- One row per landmark template; a GeoPackage feature table whose geometry is the
+-- footprint box. Column types are GeoPackage data types (FLOAT = 32-bit float,
+-- DOUBLE = 64-bit). The pixel blob is the last column so that reads of the other
+-- columns stop before it.
+CREATE TABLE templates (
+    fid INTEGER PRIMARY KEY AUTOINCREMENT NOT NULL,
+    geom POLYGON NOT NULL,
+    level SMALLINT NOT NULL CHECK (level BETWEEN 0 AND 255),
+    gsd_m DOUBLE NOT NULL,
+    width_px INTEGER NOT NULL,
+    height_px INTEGER NOT NULL,
+    -- Centre: WGS84 geodetic, ellipsoidal height.
+    lat_deg DOUBLE NOT NULL,
+    lon_deg DOUBLE NOT NULL,
+    h_m DOUBLE NOT NULL,
+    -- The same centre in ECEF, denormalised for SQL users.
+    ecef_x_m DOUBLE NOT NULL,
+    ecef_y_m DOUBLE NOT NULL,
+    ecef_z_m DOUBLE NOT NULL,
+    -- Footprint box; footprint_min_lon_deg > footprint_max_lon_deg crosses the antimeridian.
+    footprint_min_lon_deg DOUBLE NOT NULL,
+    footprint_min_lat_deg DOUBLE NOT NULL,
+    footprint_max_lon_deg DOUBLE NOT NULL,
+    footprint_max_lat_deg DOUBLE NOT NULL,
+    -- Terrain plane fit in the template's ENU frame.
+    plane_normal_e DOUBLE NOT NULL,
+    plane_normal_n DOUBLE NOT NULL,
+    plane_normal_u DOUBLE NOT NULL,
+    plane_residual_rms_m DOUBLE NOT NULL,
+    -- n x n heights (m, relative to h_m), little-endian f32, row 0 north.
+    height_grid_n INTEGER NOT NULL,
+    height_grid_spacing_m DOUBLE NOT NULL,
+    height_grid_heights_m BLOB NOT NULL
+        CHECK (length(height_grid_heights_m) = 4 * height_grid_n * height_grid_n),
+    shi_tomasi FLOAT NOT NULL,
+    contrast_std FLOAT NOT NULL,
+    second_peak_ncc FLOAT NOT NULL,
+    -- Index into the 'sources' metadata list.
+    source INTEGER NOT NULL,
+    -- Grey levels, u8, row-major, row 0 north; keep last.
+    pixels BLOB NOT NULL CHECK (length(pixels) = width_px * height_px)
+);
+
+INSERT INTO gpkg_contents (table_name, data_type, identifier, description, srs_id)
+VALUES ('templates', 'features', 'templates',
+        'trn landmark templates: footprints of the north-up image patches', 4326);
+INSERT INTO gpkg_geometry_columns VALUES ('templates', 'geom', 'POLYGON', 4326, 0, 0);
+
+-- Spatial + level index for LandmarkDb queries. Float32 bounds rounded outward by
+-- SQLite: a coarse filter only, rechecked against the footprint columns. A footprint
+-- crossing the antimeridian is entered with the hull of its two halves, i.e. the
+-- whole longitude range.
+CREATE VIRTUAL TABLE templates_rtree USING rtree(
+    id, min_lon, max_lon, min_lat, max_lat, min_level, max_level);
+
+-- Plain-SQL triggers keep templates_rtree in step with templates, whoever writes.
+CREATE TRIGGER templates_rtree_insert AFTER INSERT ON templates
+BEGIN
+    INSERT INTO templates_rtree VALUES (
+        NEW.fid,
+        CASE WHEN NEW.footprint_min_lon_deg <= NEW.footprint_max_lon_deg
+             THEN NEW.footprint_min_lon_deg ELSE min(-180.0, NEW.footprint_max_lon_deg) END,
+        CASE WHEN NEW.footprint_min_lon_deg <= NEW.footprint_max_lon_deg
+             THEN NEW.footprint_max_lon_deg ELSE max(180.0, NEW.footprint_min_lon_deg) END,
+        NEW.footprint_min_lat_deg, NEW.footprint_max_lat_deg,
+        NEW.level, NEW.level);
+END;
+
+CREATE TRIGGER templates_rtree_update AFTER UPDATE OF
+    fid, level, footprint_min_lon_deg, footprint_min_lat_deg, footprint_max_lon_deg,
+    footprint_max_lat_deg ON templates
+BEGIN
+    DELETE FROM templates_rtree WHERE id = OLD.fid;
+    INSERT INTO templates_rtree VALUES (
+        NEW.fid,
+        CASE WHEN NEW.footprint_min_lon_deg <= NEW.footprint_max_lon_deg
+             THEN NEW.footprint_min_lon_deg ELSE min(-180.0, NEW.footprint_max_lon_deg) END,
+        CASE WHEN NEW.footprint_min_lon_deg <= NEW.footprint_max_lon_deg
+             THEN NEW.footprint_max_lon_deg ELSE max(180.0, NEW.footprint_min_lon_deg) END,
+        NEW.footprint_min_lat_deg, NEW.footprint_max_lat_deg,
+        NEW.level, NEW.level);
+END;
+
+CREATE TRIGGER templates_rtree_delete AFTER DELETE ON templates
+BEGIN
+    DELETE FROM templates_rtree WHERE id = OLD.fid;
+END;
+
+-- Per-level summary, filled by DbWriter::finish (finish.sql) so that LandmarkDb::levels
+-- does not scan the templates.
+CREATE TABLE trn_levels (
+    level INTEGER NOT NULL PRIMARY KEY,
+    gsd_m DOUBLE NOT NULL,
+    template_count INTEGER NOT NULL,
+    min_lon_deg DOUBLE NOT NULL,
+    min_lat_deg DOUBLE NOT NULL,
+    max_lon_deg DOUBLE NOT NULL,
+    max_lat_deg DOUBLE NOT NULL
+);

@@ -1,0 +1,182 @@
+//! SQL text and the mapping between [`Template`] and a `templates` row.
+
+use std::path::Path;
+
+use rusqlite::{params, Row, Statement};
+use trn_geodesy::Geodetic;
+use trn_landmark::{GeoBox, HeightGrid, Template, TemplateQuality, TerrainPatch};
+
+use crate::error::{SqlContext, StoreError, StoreErrorKind};
+use crate::gpkg::footprint_polygon_blob;
+
+pub(crate) const GPKG_CORE_SQL: &str = include_str!("../sql/gpkg_core.sql");
+pub(crate) const TEMPLATES_SQL: &str = include_str!("../sql/templates.sql");
+pub(crate) const GPKG_RTREE_SQL: &str = include_str!("../sql/gpkg_rtree.sql");
+pub(crate) const FINISH_SQL: &str = include_str!("../sql/finish.sql");
+
+pub(crate) const INSERT_TEMPLATE: &str = "INSERT INTO templates (
+    geom, level, gsd_m, width_px, height_px, lat_deg, lon_deg, h_m, ecef_x_m, ecef_y_m, ecef_z_m,
+    footprint_min_lon_deg, footprint_min_lat_deg, footprint_max_lon_deg, footprint_max_lat_deg,
+    plane_normal_e, plane_normal_n, plane_normal_u, plane_residual_rms_m,
+    height_grid_n, height_grid_spacing_m, height_grid_heights_m,
+    shi_tomasi, contrast_std, second_peak_ncc, source, pixels)
+VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16, ?17, ?18, ?19, ?20,
+    ?21, ?22, ?23, ?24, ?25, ?26, ?27)";
+
+/// Columns read by [`template_from_row`], in its order; a macro so that `concat!`
+/// can build constant SQL for `prepare_cached`.
+macro_rules! template_columns {
+    () => {
+        "fid, level, gsd_m, width_px, height_px, lat_deg, lon_deg, h_m, \
+         footprint_min_lon_deg, footprint_min_lat_deg, footprint_max_lon_deg, footprint_max_lat_deg, \
+         plane_normal_e, plane_normal_n, plane_normal_u, plane_residual_rms_m, \
+         height_grid_n, height_grid_spacing_m, height_grid_heights_m, \
+         shi_tomasi, contrast_std, second_peak_ncc, source, pixels"
+    };
+}
+pub(crate) use template_columns;
+
+/// Why a template cannot be stored. SQLite turns NaN into NULL and the R*Tree rejects
+/// NaN and inverted boxes, so those are refused up front with the field's name.
+pub(crate) fn validate(t: &Template) -> Result<(), String> {
+    let expected_px = t.width_px as u64 * t.height_px as u64;
+    if t.pixels.len() as u64 != expected_px {
+        return Err(format!(
+            "pixels has {} bytes, expected width_px x height_px = {} x {} = {expected_px}",
+            t.pixels.len(),
+            t.width_px,
+            t.height_px
+        ));
+    }
+    let g = &t.terrain.height_grid;
+    let expected_heights = g.n as u64 * g.n as u64;
+    if g.heights_m.len() as u64 != expected_heights {
+        return Err(format!(
+            "height grid has {} heights, expected n x n = {} x {} = {expected_heights}",
+            g.heights_m.len(),
+            g.n,
+            g.n
+        ));
+    }
+    let fp = &t.footprint;
+    let n = &t.terrain.plane_normal_enu;
+    let q = &t.quality;
+    let reals: [(&str, f64); 17] = [
+        ("gsd_m", t.gsd_m),
+        ("center.lat_deg", t.center.lat_deg),
+        ("center.lon_deg", t.center.lon_deg),
+        ("center.h_m", t.center.h_m),
+        ("footprint.min_lon_deg", fp.min_lon_deg),
+        ("footprint.min_lat_deg", fp.min_lat_deg),
+        ("footprint.max_lon_deg", fp.max_lon_deg),
+        ("footprint.max_lat_deg", fp.max_lat_deg),
+        ("terrain.plane_normal_enu[0]", n[0]),
+        ("terrain.plane_normal_enu[1]", n[1]),
+        ("terrain.plane_normal_enu[2]", n[2]),
+        ("terrain.plane_residual_rms_m", t.terrain.plane_residual_rms_m),
+        ("terrain.height_grid.spacing_m", g.spacing_m),
+        ("quality.shi_tomasi", q.shi_tomasi as f64),
+        ("quality.contrast_std", q.contrast_std as f64),
+        ("quality.second_peak_ncc", q.second_peak_ncc as f64),
+        ("source", t.source as f64),
+    ];
+    if let Some((name, v)) = reals.iter().find(|(_, v)| !v.is_finite()) {
+        return Err(format!("{name} is {v}, must be finite"));
+    }
+    if fp.min_lat_deg > fp.max_lat_deg {
+        return Err(format!("footprint min_lat_deg {} > max_lat_deg {}", fp.min_lat_deg, fp.max_lat_deg));
+    }
+    Ok(())
+}
+
+/// Inserts one (validated) template with a fresh id and returns the id.
+pub(crate) fn insert_template(stmt: &mut Statement<'_>, t: &Template) -> rusqlite::Result<i64> {
+    let ecef = t.center.to_ecef();
+    let fp = &t.footprint;
+    let n = &t.terrain.plane_normal_enu;
+    let g = &t.terrain.height_grid;
+    let heights: Vec<u8> = g.heights_m.iter().flat_map(|h| h.to_le_bytes()).collect();
+    stmt.insert(params![
+        footprint_polygon_blob(fp),
+        t.level,
+        t.gsd_m,
+        t.width_px,
+        t.height_px,
+        t.center.lat_deg,
+        t.center.lon_deg,
+        t.center.h_m,
+        ecef.x(),
+        ecef.y(),
+        ecef.z(),
+        fp.min_lon_deg,
+        fp.min_lat_deg,
+        fp.max_lon_deg,
+        fp.max_lat_deg,
+        n[0],
+        n[1],
+        n[2],
+        t.terrain.plane_residual_rms_m,
+        g.n,
+        g.spacing_m,
+        heights,
+        t.quality.shi_tomasi,
+        t.quality.contrast_std,
+        t.quality.second_peak_ncc,
+        t.source,
+        t.pixels,
+    ])
+}
+
+/// Decodes a row selected with [`TEMPLATE_COLUMNS`].
+pub(crate) fn template_from_row(row: &Row<'_>, path: &Path) -> Result<Template, StoreError> {
+    let id: i64 = row.get(0).at(path)?;
+    let corrupt = |msg: String| StoreError::new(path, StoreErrorKind::Corrupt(msg)).with_template_id(id);
+    let mut heights_len_bytes = 0;
+    let t = (|| -> rusqlite::Result<Template> {
+        let heights_blob: Vec<u8> = row.get(18)?;
+        heights_len_bytes = heights_blob.len();
+        Ok(Template {
+            id,
+            level: row.get(1)?,
+            gsd_m: row.get(2)?,
+            width_px: row.get(3)?,
+            height_px: row.get(4)?,
+            center: Geodetic { lat_deg: row.get(5)?, lon_deg: row.get(6)?, h_m: row.get(7)? },
+            footprint: GeoBox {
+                min_lon_deg: row.get(8)?,
+                min_lat_deg: row.get(9)?,
+                max_lon_deg: row.get(10)?,
+                max_lat_deg: row.get(11)?,
+            },
+            terrain: TerrainPatch {
+                plane_normal_enu: [row.get(12)?, row.get(13)?, row.get(14)?],
+                plane_residual_rms_m: row.get(15)?,
+                height_grid: HeightGrid {
+                    n: row.get(16)?,
+                    spacing_m: row.get(17)?,
+                    heights_m: heights_blob
+                        .chunks_exact(4)
+                        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                        .collect(),
+                },
+            },
+            quality: TemplateQuality {
+                shi_tomasi: row.get(19)?,
+                contrast_std: row.get(20)?,
+                second_peak_ncc: row.get(21)?,
+            },
+            source: row.get(22)?,
+            pixels: row.get(23)?,
+        })
+    })()
+    .map_err(|e| corrupt(e.to_string()))?;
+    // The CHECK constraints guard these for our writer; a foreign writer may not have.
+    let g = &t.terrain.height_grid;
+    if heights_len_bytes as u64 != 4 * g.n as u64 * g.n as u64 {
+        return Err(corrupt(format!("height grid blob has {heights_len_bytes} bytes for n = {}", g.n)));
+    }
+    if t.pixels.len() as u64 != t.width_px as u64 * t.height_px as u64 {
+        return Err(corrupt(format!("{} pixels for {} x {}", t.pixels.len(), t.width_px, t.height_px)));
+    }
+    Ok(t)
+}

@@ -1,0 +1,65 @@
+//! Helpers for the end-to-end tests: run the real `trn` binary, find the samples.
+#![allow(dead_code)]
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+pub fn trn() -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_trn"));
+    c.env("TRN_LOG", "info");
+    c
+}
+
+pub fn run(args: &[&str]) -> Output {
+    trn().args(args).output().expect("run trn")
+}
+
+pub fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+/// A real sample fetched by data-samples/fetch.sh, copied into `dir` so no test
+/// ever writes next to the shared files.
+pub fn sample(name: &str, dir: &Path) -> PathBuf {
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("data-samples/real").join(name);
+    assert!(
+        src.exists(),
+        "{} is missing: run data-samples/fetch.sh first (the test script does)",
+        src.display()
+    );
+    let dst = dir.join(name);
+    std::fs::copy(&src, &dst).expect("copy sample");
+    dst
+}
+
+/// Files in `dir` other than the ones listed: what a failed build must not leave.
+pub fn leftovers(dir: &Path, inputs: &[&Path]) -> Vec<PathBuf> {
+    std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| !inputs.iter().any(|i| i == p))
+        .collect()
+}
+
+/// Synthetic ortho + DEM (UTM 13N, ellipsoidal heights) via `trn synth`.
+pub fn synth(dir: &Path, size: usize, gsd: f64, east: f64, seed: u64) -> (PathBuf, PathBuf) {
+    let ortho = dir.join(format!("synth-ortho-{seed}.tif"));
+    let dem = dir.join(format!("synth-dem-{seed}.tif"));
+    let o = run(&[
+        "synth",
+        "--ortho",
+        ortho.to_str().unwrap(),
+        "--dem",
+        dem.to_str().unwrap(),
+        "--size",
+        &size.to_string(),
+        "--gsd",
+        &gsd.to_string(),
+        "--east",
+        &east.to_string(),
+        "--seed",
+        &seed.to_string(),
+    ]);
+    assert!(o.status.success(), "synth failed: {}", stderr(&o));
+    (ortho, dem)
+}

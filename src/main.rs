@@ -9,6 +9,11 @@ use clap::{Parser, Subcommand, ValueEnum};
 use tracing_subscriber::EnvFilter;
 use trn_builder::{BuildOptions, DemVertical};
 
+// Tiles allocate large short-lived buffers; glibc would hand each back to the
+// kernel and fault it in again.
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 #[derive(Parser)]
 #[command(
     name = "trn",
@@ -91,8 +96,8 @@ struct BuildArgs {
     #[arg(long, default_value_t = 0.5)]
     max_relief: f64,
     /// Worker threads (default: all cores).
-    #[arg(long)]
-    threads: Option<usize>,
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=1024))]
+    threads: Option<u32>,
 }
 
 #[derive(clap::Args)]
@@ -140,7 +145,7 @@ fn main() -> ExitCode {
 
 fn run_build(a: BuildArgs) -> anyhow::Result<()> {
     if let Some(n) = a.threads {
-        rayon::ThreadPoolBuilder::new().num_threads(n).build_global()?;
+        rayon::ThreadPoolBuilder::new().num_threads(n as usize).build_global()?;
     }
     let cancel = Arc::new(AtomicBool::new(false));
     let flag = cancel.clone();

@@ -164,6 +164,7 @@ fn check_sample(s: &Sample) {
         worst_off = worst_off.max(off);
         checked += 1;
     }
+    check_index(&db, &db_path, &templates);
     eprintln!(
         "{}: {checked} templates re-found, worst NCC {worst_ncc:.3}, worst offset {worst_off:.2} px",
         s.ortho
@@ -171,6 +172,38 @@ fn check_sample(s: &Sample) {
     // The build must not leave anything but its output.
     let left = common::leftovers(dir.path(), &[&ortho_path, &dem_path, &db_path]);
     assert!(left.is_empty(), "left behind: {left:?}");
+}
+
+/// GDAL opens the file as a GeoPackage with one footprint per template, and the
+/// R*Tree bounding-box query returns exactly what a brute-force scan finds.
+fn check_index(db: &LandmarkDb, path: &std::path::Path, templates: &[Template]) {
+    let o = std::process::Command::new("ogrinfo")
+        .args(["-ro", "-so", path.to_str().unwrap(), "templates"])
+        .output()
+        .expect("ogrinfo (gdal-bin) must be installed");
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "ogrinfo failed: {}", String::from_utf8_lossy(&o.stderr));
+    assert!(text.contains(&format!("Feature Count: {}", templates.len())), "ogrinfo says: {text}");
+
+    let ext = db.extent().unwrap().expect("extent");
+    let (w, h) = (ext.max_lon_deg - ext.min_lon_deg, ext.max_lat_deg - ext.min_lat_deg);
+    let mut seed = 12345u64;
+    let mut rnd = || {
+        seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        (seed >> 11) as f64 / (1u64 << 53) as f64
+    };
+    for _ in 0..300 {
+        let (x, y) =
+            (ext.min_lon_deg - 0.1 * w + 1.2 * w * rnd(), ext.min_lat_deg - 0.1 * h + 1.2 * h * rnd());
+        let (bw, bh) = (0.3 * w * rnd(), 0.3 * h * rnd());
+        let bbox = trn_landmark::GeoBox::new(x, y, x + bw, y + bh);
+        let mut got = db.query_bbox_ids(&trn_store::BboxQuery::new(bbox)).unwrap();
+        got.sort();
+        let mut want: Vec<i64> =
+            templates.iter().filter(|t| t.footprint.intersects(&bbox)).map(|t| t.id).collect();
+        want.sort();
+        assert_eq!(got, want, "bbox {bbox:?}");
+    }
 }
 
 #[test]

@@ -17,7 +17,7 @@ pub enum BuildError {
     GeoidGridNeeded { path: PathBuf, datum: String },
     #[error("{}: cannot read geoid grid: {reason}", path.display())]
     Geoid { path: PathBuf, reason: String },
-    #[error("the orthoimagery ({ortho}) and the DEM ({dem}) do not overlap")]
+    #[error("the orthoimagery (--ortho: {ortho}) and the DEM (--dem: {dem}) do not overlap")]
     NoOverlap { ortho: String, dem: String },
     #[error("invalid option {option}: {reason}")]
     Option { option: &'static str, reason: String },

@@ -129,6 +129,22 @@ impl BuildOptions {
                 return bad("--base-gsd", "must be a positive number of metres");
             }
         }
+        let positive = |v: f64| v.is_finite() && v > 0.0;
+        if !positive(self.max_relief_gsd) {
+            return bad("--max-relief", "must be a positive number of GSDs");
+        }
+        if !positive(self.max_gsd_m) {
+            return bad("--max-gsd", "must be a positive number of metres");
+        }
+        if !(self.min_contrast_std.is_finite() && self.min_contrast_std >= 0.0) {
+            return bad("--min-contrast", "must be a number >= 0");
+        }
+        if !(self.min_shi_tomasi.is_finite() && self.min_shi_tomasi >= 0.0) {
+            return bad("--min-shi-tomasi", "must be a number >= 0");
+        }
+        if self.search_radius_px == 0 {
+            return bad("--search-radius", "must be at least 1 pixel");
+        }
         if !(self.max_second_peak > 0.0 && self.max_second_peak <= 1.0) {
             return bad("--max-second-peak", "must be in (0, 1]");
         }
@@ -213,6 +229,13 @@ pub fn build(opts: &BuildOptions, cancel: &AtomicBool) -> Result<BuildReport> {
         let mag = 10f64.powf(g.log10().floor() - 2.0);
         (g / mag).ceil() * mag
     });
+    let finest = groups.iter().map(|g| g.info.pixel_dx_m.min(g.info.pixel_dy_m)).fold(f64::MAX, f64::min);
+    if base_gsd < 0.5 * finest {
+        return Err(BuildError::Option {
+            option: "--base-gsd",
+            reason: format!("{base_gsd} m is finer than half the finest ortho pixel ({finest:.3} m)"),
+        });
+    }
     let levels = opts.levels.unwrap_or_else(|| {
         let mut n = 1u8;
         while n < 12 && base_gsd * 2f64.powi(n as i32) <= opts.max_gsd_m {
@@ -292,8 +315,9 @@ fn open_dems(opts: &BuildOptions) -> Result<Vec<DemSpec>> {
     for p in &opts.dems {
         let (ds, info) = source::inspect(p)?;
         source::check_not_all_nodata(&ds, p)?;
-        let band =
-            ds.rasterband(1).map_err(|e| BuildError::Read { path: p.clone(), reason: e.to_string() })?;
+        let band = ds
+            .rasterband(1)
+            .map_err(|e| BuildError::Read { path: p.clone(), reason: source::gdal_reason(&e, p) })?;
         let unit = band.unit().to_lowercase();
         let to_metres = match unit.as_str() {
             "ft" | "foot" | "feet" => 0.3048,
@@ -334,13 +358,18 @@ fn open_dems(opts: &BuildOptions) -> Result<Vec<DemSpec>> {
     Ok(out)
 }
 
-fn union_text(boxes: &[trn_landmark::GeoBox]) -> String {
-    boxes
+fn union_text(rasters: &[&RasterInfo]) -> String {
+    rasters
         .iter()
-        .map(|b| {
+        .map(|r| {
+            let b = r.extent;
             format!(
-                "lon {:.4}..{:.4} lat {:.4}..{:.4}",
-                b.min_lon_deg, b.max_lon_deg, b.min_lat_deg, b.max_lat_deg
+                "{} lon {:.4}..{:.4} lat {:.4}..{:.4}",
+                r.path.display(),
+                b.min_lon_deg,
+                b.max_lon_deg,
+                b.min_lat_deg,
+                b.max_lat_deg
             )
         })
         .collect::<Vec<_>>()
@@ -353,8 +382,8 @@ fn check_overlap(orthos: &[&RasterInfo], dems: &[DemSpec]) -> Result<()> {
         return Ok(());
     }
     Err(BuildError::NoOverlap {
-        ortho: union_text(&orthos.iter().map(|o| o.extent).collect::<Vec<_>>()),
-        dem: union_text(&dems.iter().map(|d| d.info.extent).collect::<Vec<_>>()),
+        ortho: union_text(orthos),
+        dem: union_text(&dems.iter().map(|d| &d.info).collect::<Vec<_>>()),
     })
 }
 
@@ -404,6 +433,11 @@ struct Worker {
     to_wgs: CoordTransform,
     from_wgs: CoordTransform,
 }
+
+// SAFETY: GDAL datasets and OGR coordinate transformations may move between
+// threads as long as one thread uses them at a time; each Worker lives in its
+// own Mutex slot and is only touched while that lock is held.
+unsafe impl Send for Worker {}
 
 impl Worker {
     fn new(g: &OrthoGroup, dems: &[DemSpec]) -> Result<Self> {
@@ -515,6 +549,9 @@ fn build_group(
     let rejects = Mutex::new(HashMap::<Reject, usize>::new());
     let mut candidates = 0usize;
     let mut prev: Option<LevelFile> = None;
+    // One set of GDAL/PROJ handles per thread: opening them costs milliseconds.
+    let workers: Vec<Mutex<Option<Worker>>> =
+        (0..rayon::current_num_threads().max(1)).map(|_| Mutex::new(None)).collect();
     for p in 0..=top {
         let (w, h) = sizes[p];
         let plan = plan_for(p);
@@ -533,41 +570,41 @@ fn build_group(
         let tiles = tiles_of(p);
         let results: Vec<Result<(Vec<Template>, usize)>> = tiles
             .par_iter()
-            .map_init(
-                || Worker::new(g, dems),
-                |worker, &(x0, x1, y0, y1)| {
-                    if cancel.load(Ordering::Relaxed) {
-                        return Err(BuildError::Cancelled);
+            .map(|&(x0, x1, y0, y1)| {
+                if cancel.load(Ordering::Relaxed) {
+                    return Err(BuildError::Cancelled);
+                }
+                let slot = &workers[rayon::current_thread_index().unwrap_or(0) % workers.len()];
+                let mut guard = slot.lock().unwrap_or_else(|e| e.into_inner());
+                if guard.is_none() {
+                    *guard = Some(Worker::new(g, dems)?);
+                }
+                let worker = guard.as_ref().expect("worker was just created");
+                let (wx0, wy0) = (x0 as isize - margin as isize, y0 as isize - margin as isize);
+                let (ww, wh) = (x1 - x0 + 2 * margin, y1 - y0 + 2 * margin);
+                let win = match &prev {
+                    None => worker.ortho.read(wx0, wy0, ww, wh)?,
+                    Some(f) => f.read(wx0, wy0, ww, wh)?,
+                };
+                if let Some(next) = &next {
+                    let (cw, ch) = ((x1 - x0) & !1, (y1 - y0) & !1);
+                    let (lum, valid) = pyramid::downsample2(&win, margin, margin, cw, ch);
+                    let nw = (cw / 2).min(next.width.saturating_sub(x0 / 2));
+                    if nw > 0 && ch > 0 {
+                        let rows = (ch / 2).min(next.height.saturating_sub(y0 / 2));
+                        let (lum, valid) = crop_cols(&lum, &valid, cw / 2, nw, rows);
+                        next.write(x0 / 2, y0 / 2, nw, &lum, &valid)?;
                     }
-                    let worker = worker
-                        .as_ref()
-                        .map_err(|e| BuildError::Read { path: g.path.clone(), reason: e.to_string() })?;
-                    let (wx0, wy0) = (x0 as isize - margin as isize, y0 as isize - margin as isize);
-                    let (ww, wh) = (x1 - x0 + 2 * margin, y1 - y0 + 2 * margin);
-                    let win = match &prev {
-                        None => worker.ortho.read(wx0, wy0, ww, wh)?,
-                        Some(f) => f.read(wx0, wy0, ww, wh)?,
-                    };
-                    if let Some(next) = &next {
-                        let (cw, ch) = ((x1 - x0) & !1, (y1 - y0) & !1);
-                        let (lum, valid) = pyramid::downsample2(&win, margin, margin, cw, ch);
-                        let nw = (cw / 2).min(next.width.saturating_sub(x0 / 2));
-                        if nw > 0 && ch > 0 {
-                            let rows = (ch / 2).min(next.height.saturating_sub(y0 / 2));
-                            let (lum, valid) = crop_cols(&lum, &valid, cw / 2, nw, rows);
-                            next.write(x0 / 2, y0 / 2, nw, &lum, &valid)?;
-                        }
+                }
+                let out = match plan {
+                    Some(l) => {
+                        tile_templates(&win, margin, (x1 - x0, y1 - y0), &l, g, worker, opts, &rejects)
                     }
-                    let out = match plan {
-                        Some(l) => {
-                            tile_templates(&win, margin, (x1 - x0, y1 - y0), &l, g, worker, opts, &rejects)
-                        }
-                        None => (Vec::new(), 0),
-                    };
-                    bar.inc(1);
-                    Ok(out)
-                },
-            )
+                    None => (Vec::new(), 0),
+                };
+                bar.inc(1);
+                Ok(out)
+            })
             .collect();
         for r in results {
             let (t, c) = r?;

@@ -38,7 +38,10 @@ impl OrthoReader {
     pub fn open(path: &Path, lum: &Luminance) -> Result<Self> {
         let ds = crate::source::open(path)?;
         let (width, height) = ds.raster_size();
-        let rerr = |e: gdal::errors::GdalError| BuildError::Read { path: path.into(), reason: e.to_string() };
+        let rerr = |e: gdal::errors::GdalError| BuildError::Read {
+            path: path.into(),
+            reason: crate::source::gdal_reason(&e, path),
+        };
         let mut nodata = Vec::new();
         for &(b, _) in &lum.bands {
             nodata.push(ds.rasterband(b).map_err(rerr)?.no_data_value());

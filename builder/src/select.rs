@@ -41,52 +41,89 @@ pub struct Candidate {
 }
 
 /// Box sums over a `win_w x win_h` window centred at each pixel (top-left at
-/// `x - win_w/2`), computed with running sums; entries whose window leaves the
-/// image are `f32::NAN`.
-pub fn box_sum(src: &[f32], width: usize, height: usize, win_w: usize, win_h: usize) -> Vec<f32> {
-    let mut horiz = vec![f32::NAN; width * height];
-    let (hw, hh) = (win_w / 2, win_h / 2);
+/// `x - win_w/2`), on the grid of every `stride`-th pixel (output index
+/// `gy * gw + gx` for pixel `(gx * stride, gy * stride)`, `gw = ceil(w / stride)`),
+/// computed with running sums; entries whose window leaves the image are `NAN`.
+pub fn box_sum(
+    src: &[f32],
+    width: usize,
+    height: usize,
+    win_w: usize,
+    win_h: usize,
+    stride: usize,
+) -> Vec<f32> {
+    let (gw, gh) = (width.div_ceil(stride), height.div_ceil(stride));
+    let mut out = vec![f32::NAN; gw * gh];
     if win_w > width || win_h > height {
-        return horiz;
+        return out;
     }
+    let (hw, hh) = (win_w / 2, win_h / 2);
+    // Horizontal running sums, evaluated only at grid columns: the window
+    // advances `stride` pixels between outputs.
+    let mut horiz = vec![f64::NAN; gw * height];
+    let first = hw.next_multiple_of(stride);
     for y in 0..height {
         let row = &src[y * width..(y + 1) * width];
-        let out = &mut horiz[y * width..(y + 1) * width];
+        let out_row = &mut horiz[y * gw..(y + 1) * gw];
+        let mut x = first;
+        if x + win_w - hw > width {
+            continue;
+        }
         // f64 accumulator: no drift across long rows.
-        let mut acc: f64 = row[..win_w].iter().map(|&v| v as f64).sum();
-        out[hw] = acc as f32;
-        for x0 in 1..=(width - win_w) {
-            acc += row[x0 + win_w - 1] as f64 - row[x0 - 1] as f64;
-            out[x0 + hw] = acc as f32;
+        let mut acc: f64 = row[x - hw..x - hw + win_w].iter().map(|&v| v as f64).sum();
+        out_row[x / stride] = acc;
+        while x + stride + win_w - hw <= width {
+            let (old, new) = (x - hw, x - hw + win_w);
+            for k in 0..stride {
+                acc += row[new + k] as f64 - row[old + k] as f64;
+            }
+            x += stride;
+            out_row[x / stride] = acc;
         }
     }
-    let mut out = vec![f32::NAN; width * height];
-    let mut acc = vec![0f64; width];
+    let mut acc = vec![0f64; gw];
     for y in 0..win_h {
-        for x in 0..width {
-            acc[x] += horiz[y * width + x] as f64;
+        for (a, h) in acc.iter_mut().zip(&horiz[y * gw..(y + 1) * gw]) {
+            *a += h;
         }
     }
-    for x in 0..width {
-        out[hh * width + x] = acc[x] as f32;
-    }
+    let emit = |y: usize, acc: &[f64], out: &mut [f32]| {
+        if y % stride == 0 {
+            for (o, a) in out[(y / stride) * gw..(y / stride + 1) * gw].iter_mut().zip(acc) {
+                *o = *a as f32;
+            }
+        }
+    };
+    emit(hh, &acc, &mut out);
     for y0 in 1..=(height - win_h) {
-        let (add, sub) = ((y0 + win_h - 1) * width, (y0 - 1) * width);
-        for x in 0..width {
-            acc[x] += horiz[add + x] as f64 - horiz[sub + x] as f64;
-            out[(y0 + hh) * width + x] = acc[x] as f32;
+        let (add, sub) = ((y0 + win_h - 1) * gw, (y0 - 1) * gw);
+        for x in 0..gw {
+            acc[x] += horiz[add + x] - horiz[sub + x];
         }
+        emit(y0 + hh, &acc, &mut out);
     }
     out
 }
 
-/// Per-pixel selection measures of a window.
+/// Per-pixel selection measures of a window, on the grid of every `stride`-th pixel.
 pub struct Measures {
+    pub stride: usize,
+    pub grid_w: usize,
     pub shi_tomasi: Vec<f32>,
     pub contrast_std: Vec<f32>,
     /// Window fully valid and not too saturated.
     pub usable: Vec<bool>,
 }
+
+impl Measures {
+    fn index(&self, x: usize, y: usize) -> usize {
+        (y / self.stride) * self.grid_w + x / self.stride
+    }
+}
+
+/// Candidate centres are taken on a 2-pixel grid: a quarter of the work, and a
+/// landmark's exact centre does not matter.
+pub const GRID_STRIDE: usize = 2;
 
 pub fn measures(img: &LumWindow, p: &SelectParams) -> Measures {
     let (w, h) = (img.width, img.height);
@@ -94,15 +131,21 @@ pub fn measures(img: &LumWindow, p: &SelectParams) -> Measures {
     let mut gxx = vec![0f32; n];
     let mut gyy = vec![0f32; n];
     let mut gxy = vec![0f32; n];
-    let mut invalid = vec![0f32; n];
-    let mut saturated = vec![0f32; n];
+    // Invalid pixels weigh INVALID, saturated ones 1: one box sum tells both.
+    const INVALID: f32 = 4096.0;
+    let mut bad = vec![0f32; n];
     let mut lum2 = vec![0f32; n];
     for y in 0..h {
         for x in 0..w {
             let i = y * w + x;
             let v = img.lum[i];
-            invalid[i] = if img.valid[i] == 0 { 1.0 } else { 0.0 };
-            saturated[i] = if !(5.0..250.0).contains(&v) { 1.0 } else { 0.0 };
+            bad[i] = if img.valid[i] == 0 {
+                INVALID
+            } else if !(5.0..250.0).contains(&v) {
+                1.0
+            } else {
+                0.0
+            };
             lum2[i] = v * v;
             if x > 0 && x + 1 < w && y > 0 && y + 1 < h {
                 let gx = 0.5 * (img.lum[i + 1] - img.lum[i - 1]);
@@ -113,21 +156,21 @@ pub fn measures(img: &LumWindow, p: &SelectParams) -> Measures {
             }
         }
     }
-    let (ww, wh) = (p.win_w, p.win_h);
+    let (ww, wh, st) = (p.win_w, p.win_h, GRID_STRIDE);
     let area = (ww * wh) as f32;
-    let sxx = box_sum(&gxx, w, h, ww, wh);
-    let syy = box_sum(&gyy, w, h, ww, wh);
-    let sxy = box_sum(&gxy, w, h, ww, wh);
-    let s1 = box_sum(img.lum, w, h, ww, wh);
-    let s2 = box_sum(&lum2, w, h, ww, wh);
+    let sxx = box_sum(&gxx, w, h, ww, wh, st);
+    let syy = box_sum(&gyy, w, h, ww, wh, st);
+    let sxy = box_sum(&gxy, w, h, ww, wh, st);
+    let s1 = box_sum(img.lum, w, h, ww, wh, st);
+    let s2 = box_sum(&lum2, w, h, ww, wh, st);
     // One pixel more on each side: bilinear resampling reaches past the window.
-    let sinv = box_sum(&invalid, w, h, ww + 2, wh + 2);
-    let ssat = box_sum(&saturated, w, h, ww, wh);
-    let mut shi_tomasi = vec![0f32; n];
-    let mut contrast_std = vec![0f32; n];
-    let mut usable = vec![false; n];
-    for i in 0..n {
-        if sxx[i].is_nan() {
+    let sbad = box_sum(&bad, w, h, ww + 2, wh + 2, st);
+    let g = sxx.len();
+    let mut shi_tomasi = vec![0f32; g];
+    let mut contrast_std = vec![0f32; g];
+    let mut usable = vec![false; g];
+    for i in 0..g {
+        if sxx[i].is_nan() || sbad[i].is_nan() {
             continue;
         }
         let (a, c, b) = (sxx[i] / area, syy[i] / area, sxy[i] / area);
@@ -137,14 +180,91 @@ pub fn measures(img: &LumWindow, p: &SelectParams) -> Measures {
         let var = (s2[i] / area - mean * mean).max(0.0);
         shi_tomasi[i] = lmin;
         contrast_std[i] = var.sqrt();
-        usable[i] = sinv[i] < 0.5 && ssat[i] / area <= p.max_saturated;
+        usable[i] = sbad[i] < INVALID - 0.5 && sbad[i] / ((ww + 2) * (wh + 2)) as f32 <= p.max_saturated;
     }
-    Measures { shi_tomasi, contrast_std, usable }
+    Measures { stride: st, grid_w: w.div_ceil(st), shi_tomasi, contrast_std, usable }
+}
+
+/// A template cut from a window, zero-mean, sampled every `step`-th pixel.
+pub struct Patch {
+    cx: usize,
+    cy: usize,
+    win_w: usize,
+    win_h: usize,
+    step: usize,
+    values: Vec<f32>,
+    norm: f32,
+}
+
+impl Patch {
+    pub fn new(
+        img: &LumWindow,
+        cx: usize,
+        cy: usize,
+        win_w: usize,
+        win_h: usize,
+        step: usize,
+    ) -> Option<Self> {
+        let (x0, y0) = (cx.checked_sub(win_w / 2)?, cy.checked_sub(win_h / 2)?);
+        if x0 + win_w > img.width || y0 + win_h > img.height {
+            return None;
+        }
+        let mut values = Vec::new();
+        for r in (0..win_h).step_by(step) {
+            let row = &img.lum[(y0 + r) * img.width + x0..][..win_w];
+            values.extend(row.iter().step_by(step));
+        }
+        let mean = values.iter().map(|&v| v as f64).sum::<f64>() / values.len() as f64;
+        values.iter_mut().for_each(|v| *v -= mean as f32);
+        let norm = values.iter().map(|&v| (v as f64) * v as f64).sum::<f64>() as f32;
+        Some(Self { cx, cy, win_w, win_h, step, values, norm })
+    }
+
+    /// NCC with the window shifted by (dx, dy); `None` when it leaves the image
+    /// or either side is flat.
+    pub fn ncc(&self, img: &LumWindow, dx: isize, dy: isize) -> Option<f32> {
+        let sx0 = self.cx as isize - (self.win_w / 2) as isize + dx;
+        let sy0 = self.cy as isize - (self.win_h / 2) as isize + dy;
+        if sx0 < 0
+            || sy0 < 0
+            || sx0 as usize + self.win_w > img.width
+            || sy0 as usize + self.win_h > img.height
+        {
+            return None;
+        }
+        let (sx0, sy0) = (sx0 as usize, sy0 as usize);
+        let cols = self.win_w.div_ceil(self.step);
+        let (mut ts, mut ss, mut s1) = (0f32, 0f32, 0f32);
+        for (k, r) in (0..self.win_h).step_by(self.step).enumerate() {
+            let srow = &img.lum[(sy0 + r) * img.width + sx0..][..self.win_w];
+            let trow = &self.values[k * cols..(k + 1) * cols];
+            if self.step == 1 {
+                for (&t, &s) in trow.iter().zip(srow) {
+                    ts += t * s;
+                    ss += s * s;
+                    s1 += s;
+                }
+            } else {
+                for (&t, &s) in trow.iter().zip(srow.iter().step_by(self.step)) {
+                    ts += t * s;
+                    ss += s * s;
+                    s1 += s;
+                }
+            }
+        }
+        // Sum of t' * s equals sum of t' * (s - mean s) because t' has zero mean.
+        let n = self.values.len() as f32;
+        let vs = ss - s1 * s1 / n;
+        if vs <= 1e-6 || self.norm <= 1e-6 {
+            return None;
+        }
+        Some(ts / (self.norm * vs).sqrt())
+    }
 }
 
 /// Normalised cross-correlation of the template centred at (cx, cy) with the
-/// window shifted by (dx, dy), sampling every `step`-th pixel. `None` when the
-/// shifted window leaves the image or either patch is flat.
+/// window shifted by (dx, dy), sampling every `step`-th pixel.
+#[allow(clippy::too_many_arguments)]
 pub fn ncc_shift(
     img: &LumWindow,
     cx: usize,
@@ -155,39 +275,7 @@ pub fn ncc_shift(
     win_h: usize,
     step: usize,
 ) -> Option<f32> {
-    let (x0, y0) = (cx as isize - (win_w / 2) as isize, cy as isize - (win_h / 2) as isize);
-    let (sx0, sy0) = (x0 + dx, y0 + dy);
-    if x0 < 0 || y0 < 0 || sx0 < 0 || sy0 < 0 {
-        return None;
-    }
-    let (w, h) = (img.width as isize, img.height as isize);
-    if x0 + win_w as isize > w
-        || y0 + win_h as isize > h
-        || sx0 + win_w as isize > w
-        || sy0 + win_h as isize > h
-    {
-        return None;
-    }
-    let (mut st, mut ss, mut stt, mut sss, mut sts, mut n) = (0f64, 0f64, 0f64, 0f64, 0f64, 0f64);
-    for r in (0..win_h).step_by(step) {
-        let trow = &img.lum[(y0 as usize + r) * img.width + x0 as usize..][..win_w];
-        let srow = &img.lum[(sy0 as usize + r) * img.width + sx0 as usize..][..win_w];
-        for c in (0..win_w).step_by(step) {
-            let (t, s) = (trow[c] as f64, srow[c] as f64);
-            st += t;
-            ss += s;
-            stt += t * t;
-            sss += s * s;
-            sts += t * s;
-            n += 1.0;
-        }
-    }
-    let vt = stt - st * st / n;
-    let vs = sss - ss * ss / n;
-    if vt <= 1e-9 || vs <= 1e-9 {
-        return None;
-    }
-    Some(((sts - st * ss / n) / (vt * vs).sqrt()) as f32)
+    Patch::new(img, cx, cy, win_w, win_h, step)?.ncc(img, dx, dy)
 }
 
 /// Highest NCC of the template at (cx, cy) against shifts within `radius`,
@@ -203,6 +291,9 @@ pub fn second_peak(
     exclude: isize,
     step: usize,
 ) -> f32 {
+    let Some(patch) = Patch::new(img, cx, cy, p.win_w, p.win_h, step) else {
+        return 1.0;
+    };
     let r = p.search_radius as isize;
     let mut best = -1f32;
     let mut dy = -r;
@@ -210,7 +301,7 @@ pub fn second_peak(
         let mut dx = -r;
         while dx <= r {
             if dx.abs().max(dy.abs()) > exclude {
-                if let Some(v) = ncc_shift(img, cx, cy, dx, dy, p.win_w, p.win_h, step) {
+                if let Some(v) = patch.ncc(img, dx, dy) {
                     best = best.max(v);
                 }
             }
@@ -236,7 +327,6 @@ pub struct Core {
 pub fn select(img: &LumWindow, p: &SelectParams, core: Core) -> Vec<Candidate> {
     let m = measures(img, p);
     let mut out = Vec::new();
-    let w = img.width;
     let mut cy0 = core.y0;
     while cy0 < core.y1 {
         let cy1 = (cy0 + p.cell_h).min(core.y1);
@@ -245,9 +335,9 @@ pub fn select(img: &LumWindow, p: &SelectParams, core: Core) -> Vec<Candidate> {
             let cx1 = (cx0 + p.cell_w).min(core.x1);
             // Best few positions in the cell, strongest texture first.
             let mut cell: Vec<(f32, usize, usize)> = Vec::new();
-            for y in cy0..cy1 {
-                for x in cx0..cx1 {
-                    let i = y * w + x;
+            for y in (cy0.next_multiple_of(m.stride)..cy1).step_by(m.stride) {
+                for x in (cx0.next_multiple_of(m.stride)..cx1).step_by(m.stride) {
+                    let i = m.index(x, y);
                     if m.usable[i]
                         && m.shi_tomasi[i] >= p.min_shi_tomasi
                         && m.contrast_std[i] >= p.min_contrast_std
@@ -256,7 +346,13 @@ pub fn select(img: &LumWindow, p: &SelectParams, core: Core) -> Vec<Candidate> {
                     }
                 }
             }
-            cell.sort_by(|a, b| b.0.total_cmp(&a.0));
+            // Only the strongest few are ever tried: a partial sort is enough.
+            let keep = 32 * p.per_cell;
+            if cell.len() > keep {
+                cell.select_nth_unstable_by(keep, |a, b| b.0.total_cmp(&a.0));
+                cell.truncate(keep);
+            }
+            cell.sort_unstable_by(|a, b| b.0.total_cmp(&a.0));
             let mut taken: Vec<(usize, usize)> = Vec::new();
             let min_sep = (p.win_w.min(p.win_h) / 2).max(1);
             let mut tried = 0;
@@ -283,7 +379,7 @@ pub fn select(img: &LumWindow, p: &SelectParams, core: Core) -> Vec<Candidate> {
                     x,
                     y,
                     shi_tomasi: st,
-                    contrast_std: m.contrast_std[y * w + x],
+                    contrast_std: m.contrast_std[m.index(x, y)],
                     second_peak_ncc: sp,
                 });
             }
@@ -312,13 +408,16 @@ mod tests {
     fn box_sum_matches_brute_force() {
         let (w, h) = (37, 29);
         let src = noise(w, h, 3);
-        for &(ww, wh) in &[(5, 5), (6, 4), (1, 1), (37, 29)] {
-            let got = box_sum(&src, w, h, ww, wh);
-            for y in 0..h {
-                for x in 0..w {
+        for &(ww, wh, st) in &[(5, 5, 1), (6, 4, 1), (1, 1, 1), (37, 29, 1), (5, 5, 2), (6, 3, 2), (4, 4, 3)]
+        {
+            let got = box_sum(&src, w, h, ww, wh, st);
+            let gw = w.div_ceil(st);
+            assert_eq!(got.len(), gw * h.div_ceil(st));
+            for y in (0..h).step_by(st) {
+                for x in (0..w).step_by(st) {
                     let (x0, y0) = (x as isize - (ww / 2) as isize, y as isize - (wh / 2) as isize);
                     let inside = x0 >= 0 && y0 >= 0 && x0 as usize + ww <= w && y0 as usize + wh <= h;
-                    let g = got[y * w + x];
+                    let g = got[(y / st) * gw + x / st];
                     if !inside {
                         assert!(g.is_nan());
                         continue;

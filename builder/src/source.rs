@@ -3,6 +3,7 @@
 
 use std::path::{Path, PathBuf};
 
+use gdal::errors::GdalError;
 use gdal::raster::GdalDataType;
 use gdal::spatial_ref::{AxisMappingStrategy, CoordTransform, SpatialRef};
 use gdal::Dataset;
@@ -60,7 +61,62 @@ pub fn open(path: &Path) -> Result<Dataset> {
     if !path.exists() {
         return Err(BuildError::Open { path: path.into(), reason: "no such file".into() });
     }
-    Dataset::open(path).map_err(|e| BuildError::Open { path: path.into(), reason: e.to_string() })
+    quietly(|| Dataset::open(path)).map_err(|e| {
+        let reason = match &e {
+            // GDAL says nothing when no driver recognises the file.
+            GdalError::NullPointer { msg, .. } if msg.is_empty() => {
+                "not a raster GDAL can read (unknown format, or a damaged header)".into()
+            }
+            _ => gdal_reason(&e, path),
+        };
+        BuildError::Open { path: path.into(), reason }
+    })
+}
+
+/// GDAL's own message from an error, on one line, without a leading copy of
+/// `path` (the errors name it already).
+pub fn gdal_reason(e: &GdalError, path: &Path) -> String {
+    let msg = match e {
+        GdalError::CplError { msg, .. } | GdalError::NullPointer { msg, .. } if !msg.is_empty() => {
+            msg.clone()
+        }
+        other => other.to_string(),
+    };
+    let msg = msg.split_whitespace().collect::<Vec<_>>().join(" ");
+    let p = path.display().to_string();
+    match msg.strip_prefix(&p) {
+        Some(rest) => rest.trim_start_matches([',', ':', ' ']).to_string(),
+        None => msg,
+    }
+}
+
+/// GDAL messages while a raster is checked go to the debug log, not stderr:
+/// what matters reaches the user as the build's one error line.
+unsafe extern "C" fn gdal_to_log(
+    class: gdal_sys::CPLErr::Type,
+    no: std::ffi::c_int,
+    msg: *const std::ffi::c_char,
+) {
+    if !msg.is_null() {
+        let msg = std::ffi::CStr::from_ptr(msg).to_string_lossy();
+        tracing::debug!("GDAL ({class}/{no}): {msg}");
+    }
+}
+
+/// Runs `f` with this thread's GDAL messages sent to the debug log. GDAL still
+/// records the last error, so `gdal` results carry the message.
+fn quietly<T>(f: impl FnOnce() -> T) -> T {
+    struct Pop;
+    impl Drop for Pop {
+        fn drop(&mut self) {
+            // SAFETY: pops the handler pushed below, on the same thread.
+            unsafe { gdal_sys::CPLPopErrorHandler() };
+        }
+    }
+    // SAFETY: GDAL keeps a per-thread stack of handlers; `gdal_to_log` only reads `msg`.
+    unsafe { gdal_sys::CPLPushErrorHandler(Some(gdal_to_log)) };
+    let _pop = Pop;
+    f()
 }
 
 pub fn srs_of(ds: &Dataset, path: &Path) -> Result<SpatialRef> {
@@ -149,19 +205,59 @@ pub fn inspect(path: &Path) -> Result<(Dataset, RasterInfo)> {
     Ok((ds, info))
 }
 
-/// Fails when GDAL finds no valid pixel in band 1 (approximate statistics read
-/// an overview or a sample, not the whole file).
+/// Rasters up to this many pixels have band 1 read in full by
+/// [`check_not_all_nodata`]; larger ones are read decimated (from overviews
+/// when the file has them).
+const FULL_CHECK_PIXELS: usize = 64 << 20;
+
+/// Reads band 1 (in full up to [`FULL_CHECK_PIXELS`], decimated beyond) and
+/// fails when a block cannot be read (a truncated or damaged file) or when no
+/// pixel is valid (nodata, NaN, or masked out by an alpha/dataset mask).
 pub fn check_not_all_nodata(ds: &Dataset, path: &Path) -> Result<()> {
-    let band = ds.rasterband(1).map_err(|e| BuildError::Read { path: path.into(), reason: e.to_string() })?;
-    match band.compute_raster_min_max(true) {
-        Ok(mm) if mm.min.is_finite() && mm.max.is_finite() => Ok(()),
-        _ => {
-            // The approximate pass may miss a small valid area: make sure with an exact one.
-            match band.compute_raster_min_max(false) {
-                Ok(mm) if mm.min.is_finite() && mm.max.is_finite() => Ok(()),
-                _ => Err(BuildError::AllNodata { path: path.into() }),
+    let read_err = |e: GdalError| BuildError::Read {
+        path: path.into(),
+        reason: format!("damaged or truncated pixel data ({})", gdal_reason(&e, path)),
+    };
+    let band = ds.rasterband(1).map_err(read_err)?;
+    let nodata = band.no_data_value();
+    let flags = band.mask_flags().map_err(read_err)?;
+    let mask = if flags.is_all_valid() || flags.is_nodata() {
+        None
+    } else {
+        Some(band.open_mask_band().map_err(read_err)?)
+    };
+    let (w, h) = ds.raster_size();
+    // Decimation factor and the decimated size.
+    let f = ((w as f64 * h as f64 / FULL_CHECK_PIXELS as f64).sqrt().ceil() as usize).max(1);
+    let (ow, oh) = (w.div_ceil(f), h.div_ceil(f));
+    let rows_per_read = ((1usize << 22) / ow).max(1);
+    let mut any_valid = false;
+    quietly(|| {
+        let mut oy = 0;
+        while oy < oh {
+            let n = rows_per_read.min(oh - oy);
+            let (y0, y1) = (oy * f, ((oy + n) * f).min(h));
+            let win = ((0, y0 as isize), (w, y1 - y0), (ow, n));
+            let values = band.read_as::<f64>(win.0, win.1, win.2, None).map_err(read_err)?;
+            let masked = match &mask {
+                Some(m) => Some(m.read_as::<u8>(win.0, win.1, win.2, None).map_err(read_err)?),
+                None => None,
+            };
+            if !any_valid {
+                any_valid = values.data().iter().enumerate().any(|(i, &v)| {
+                    !v.is_nan()
+                        && nodata.is_none_or(|nd| v != nd)
+                        && masked.as_ref().is_none_or(|m| m.data()[i] != 0)
+                });
             }
+            oy += n;
         }
+        Ok::<(), BuildError>(())
+    })?;
+    if any_valid {
+        Ok(())
+    } else {
+        Err(BuildError::AllNodata { path: path.into() })
     }
 }
 
@@ -238,7 +334,7 @@ pub fn luminance_for(ds: &Dataset, info: &RasterInfo, bands_opt: Option<&[usize]
         for &(b, w) in &weights {
             let band = ds
                 .rasterband(b)
-                .map_err(|e| BuildError::Read { path: path.clone(), reason: e.to_string() })?;
+                .map_err(|e| BuildError::Read { path: path.clone(), reason: gdal_reason(&e, path) })?;
             let mm = band
                 .compute_raster_min_max(true)
                 .map_err(|_| BuildError::AllNodata { path: path.clone() })?;

@@ -15,15 +15,18 @@ use crate::source::{self, PixelToCrs, RasterInfo};
 pub fn load_geoid(path: &Path) -> Result<GeoidGrid> {
     let err = |reason: String| BuildError::Geoid { path: path.into(), reason };
     if !path.exists() {
-        return Err(err("no such file (Debian's proj-data package ships egm96_15.gtx)".into()));
+        let hint =
+            if path == Path::new(crate::EGM96_GRID) { " (Debian's proj-data package ships it)" } else { "" };
+        return Err(err(format!("no such file{hint}")));
     }
-    let ds = Dataset::open(path).map_err(|e| err(e.to_string()))?;
+    let ds = Dataset::open(path).map_err(|e| err(crate::source::gdal_reason(&e, path)))?;
     let gt = ds.geo_transform().map_err(|e| err(format!("no geotransform: {e}")))?;
     let (cols, rows) = ds.raster_size();
-    let band = ds.rasterband(1).map_err(|e| err(e.to_string()))?;
+    let band = ds.rasterband(1).map_err(|e| err(crate::source::gdal_reason(&e, path)))?;
     let nodata = band.no_data_value();
-    let buf =
-        band.read_as::<f32>((0, 0), (cols, rows), (cols, rows), None).map_err(|e| err(e.to_string()))?;
+    let buf = band
+        .read_as::<f32>((0, 0), (cols, rows), (cols, rows), None)
+        .map_err(|e| err(crate::source::gdal_reason(&e, path)))?;
     let (_, mut values) = buf.into_shape_and_vec();
     if let Some(nd) = nodata {
         for v in values.iter_mut() {
@@ -69,8 +72,10 @@ impl DemSampler {
         for s in specs {
             let ds = source::open(&s.info.path)?;
             let srs = source::srs_of(&ds, &s.info.path)?;
-            let ct = CoordTransform::new(&source::wgs84(), &srs)
-                .map_err(|e| BuildError::BadRaster { path: s.info.path.clone(), reason: e.to_string() })?;
+            let ct = CoordTransform::new(&source::wgs84(), &srs).map_err(|e| BuildError::BadRaster {
+                path: s.info.path.clone(),
+                reason: crate::source::gdal_reason(&e, &s.info.path),
+            })?;
             dems.push((s.clone(), ds, ct));
         }
         Ok(Self { dems })

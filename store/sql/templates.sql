@@ -60,7 +60,10 @@ INSERT INTO gpkg_geometry_columns VALUES ('templates', 'geom', 'POLYGON', 4326, 
 -- Spatial + level index for LandmarkDb queries. Float32 bounds rounded outward by
 -- SQLite: a coarse filter only, rechecked against the footprint columns. A footprint
 -- crossing the antimeridian is entered with the hull of its two halves, i.e. the
--- whole longitude range.
+-- whole longitude range. A template's level range is [level - 0.5, level + 0.5]: the
+-- R*Tree chooses subtrees by volume growth, and flat boxes (zero volume) would make
+-- that choice arbitrary and the tree useless. For integer levels L1 <= L2,
+-- "max_level >= L1 AND min_level <= L2" selects exactly the levels L1..L2.
 CREATE VIRTUAL TABLE templates_rtree USING rtree(
     id, min_lon, max_lon, min_lat, max_lat, min_level, max_level);
 
@@ -74,7 +77,7 @@ BEGIN
         CASE WHEN NEW.footprint_min_lon_deg <= NEW.footprint_max_lon_deg
              THEN NEW.footprint_max_lon_deg ELSE max(180.0, NEW.footprint_min_lon_deg) END,
         NEW.footprint_min_lat_deg, NEW.footprint_max_lat_deg,
-        NEW.level, NEW.level);
+        NEW.level - 0.5, NEW.level + 0.5);
 END;
 
 CREATE TRIGGER templates_rtree_update AFTER UPDATE OF
@@ -89,7 +92,7 @@ BEGIN
         CASE WHEN NEW.footprint_min_lon_deg <= NEW.footprint_max_lon_deg
              THEN NEW.footprint_max_lon_deg ELSE max(180.0, NEW.footprint_min_lon_deg) END,
         NEW.footprint_min_lat_deg, NEW.footprint_max_lat_deg,
-        NEW.level, NEW.level);
+        NEW.level - 0.5, NEW.level + 0.5);
 END;
 
 CREATE TRIGGER templates_rtree_delete AFTER DELETE ON templates
@@ -98,9 +101,11 @@ BEGIN
 END;
 
 -- Per-level summary, filled by DbWriter::finish (finish.sql) so that LandmarkDb::levels
--- does not scan the templates.
+-- does not scan the templates. Registered as a GeoPackage attributes table: GIS users
+-- see it next to the layer, and GDAL then lists only registered tables (not the
+-- shadow tables of templates_rtree).
 CREATE TABLE trn_levels (
-    level INTEGER NOT NULL PRIMARY KEY,
+    level INTEGER PRIMARY KEY NOT NULL,
     gsd_m DOUBLE NOT NULL,
     template_count INTEGER NOT NULL,
     min_lon_deg DOUBLE NOT NULL,
@@ -108,3 +113,7 @@ CREATE TABLE trn_levels (
     max_lon_deg DOUBLE NOT NULL,
     max_lat_deg DOUBLE NOT NULL
 );
+
+INSERT INTO gpkg_contents (table_name, data_type, identifier, description)
+VALUES ('trn_levels', 'attributes', 'trn_levels',
+        'trn landmark pyramid levels: ground sample distance, template count, extent');

@@ -234,8 +234,7 @@ fn check_trn_database(conn: &Connection, path: &Path) -> Result<(), StoreError> 
     if found != SCHEMA_VERSION {
         return Err(StoreError::new(path, StoreErrorKind::SchemaVersion { found, expected: SCHEMA_VERSION }));
     }
-    // DbWriter::finish creates the GeoPackage index last but one; without it the build
-    // did not complete.
+    // Only DbWriter::finish creates the GeoPackage R*Tree: without it the build was cut short.
     if !has_table("rtree_templates_geom")? {
         return Err(StoreError::new(
             path,
@@ -280,4 +279,35 @@ pub(crate) fn extent_of(levels: &[LevelInfo]) -> Option<GeoBox> {
             a.max_lat_deg.max(b.max_lat_deg),
         )
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::DbWriter;
+
+    /// The candidate query must be driven by the 3D R*Tree with all six bounds, level
+    /// included, so that a coarse level over a large area does not visit fine templates.
+    #[test]
+    fn candidate_query_uses_all_rtree_dimensions() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("plan.gpkg");
+        DbWriter::create(&path).unwrap().finish().unwrap();
+        let db = LandmarkDb::open(&path).unwrap();
+        let mut stmt = db.conn.prepare(&format!("EXPLAIN QUERY PLAN {CANDIDATES_SQL}")).unwrap();
+        let details: Vec<String> = stmt
+            .query_map(rusqlite::params![0.0, 1.0, 0.0, 1.0, 3, 3], |r| r.get(3))
+            .unwrap()
+            .collect::<Result<_, _>>()
+            .unwrap();
+        assert_eq!(details.len(), 2, "{details:?}");
+        // R*Tree idxStr: one (operator, column) pair per constraint; B is <=, D is >=;
+        // columns 0..5 are min_lon, max_lon, min_lat, max_lat, min_level, max_level.
+        let rtree = &details[0];
+        assert!(rtree.starts_with("SCAN r VIRTUAL TABLE INDEX 2:"), "{details:?}");
+        for pair in ["B0", "D1", "B2", "D3", "B4", "D5"] {
+            assert!(rtree.contains(pair), "{pair} missing: {details:?}");
+        }
+        assert!(details[1].contains("SEARCH t USING INTEGER PRIMARY KEY"), "{details:?}");
+    }
 }

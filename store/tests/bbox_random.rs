@@ -67,7 +67,7 @@ fn random_levels(rng: &mut Lcg) -> Option<RangeInclusive<u8>> {
             let l = rng.below(6) as u8;
             Some(l..=l)
         }
-        6 => Some(3..=1), // empty
+        6 => Some(RangeInclusive::new(3, 1)), // empty on purpose
         7 => Some(0..=u8::MAX),
         _ => {
             let a = rng.below(5) as u8;

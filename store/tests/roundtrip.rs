@@ -40,10 +40,9 @@ fn awkward_template() -> Template {
 fn every_field_round_trips() {
     let dir = tempfile::tempdir().unwrap();
     let mut rng = Lcg::new(1);
-    let mut crossing = synthetic_template(&mut rng, 2, 10.0, 179.9999);
+    let crossing = synthetic_template(&mut rng, 2, 10.0, 179.9999);
     assert!(crossing.footprint.crosses_antimeridian());
-    let mut originals =
-        vec![awkward_template(), synthetic_template(&mut rng, 0, 46.5, 7.5), crossing.clone()];
+    let mut originals = vec![awkward_template(), synthetic_template(&mut rng, 0, 46.5, 7.5), crossing];
     let (path, summary) = write_db(dir.path(), "rt.gpkg", &mut originals);
     assert_eq!(summary.template_count, 3);
     assert_eq!(summary.path, path);

@@ -121,6 +121,18 @@ struct SynthArgs {
     north: f64,
     #[arg(long, default_value_t = 1)]
     seed: u64,
+    /// Ortho compression: deflate (lossless) or jpeg (YCbCr q90, as USGS NAIP).
+    #[arg(long, value_enum, default_value_t = CompressArg::Deflate)]
+    compress: CompressArg,
+    /// Width of a nodata frame around the ortho (pixels).
+    #[arg(long, default_value_t = 0)]
+    nodata_border: usize,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum CompressArg {
+    Deflate,
+    Jpeg,
 }
 
 fn main() -> ExitCode {
@@ -183,7 +195,11 @@ fn run_synth(a: SynthArgs) -> anyhow::Result<()> {
         width: a.size,
         height: a.size,
     };
-    write_ortho(&a.ortho, &ortho, 3, a.seed, 0)?;
+    let compression = match a.compress {
+        CompressArg::Deflate => trn_builder::synth::Compression::Deflate,
+        CompressArg::Jpeg => trn_builder::synth::Compression::Jpeg,
+    };
+    write_ortho(&a.ortho, &ortho, 3, a.seed, a.nodata_border, compression)?;
     // DEM at 15x the ortho pixel, covering the same area with a margin.
     let dem_gsd = a.gsd * 15.0;
     let n = (a.size as f64 * a.gsd / dem_gsd).ceil() as usize + 4;

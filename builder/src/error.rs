@@ -31,6 +31,8 @@ pub enum BuildError {
         "no landmark passed the selection tests (texture, uniqueness, relief, DEM coverage); see the log"
     )]
     NoTemplates,
+    #[error("the database writer stopped")]
+    WriterStopped,
     #[error("build cancelled")]
     Cancelled,
 }

@@ -2,8 +2,8 @@
 //! template pixels resampled north-up on the local tangent plane.
 
 use gdal::spatial_ref::CoordTransform;
-use nalgebra::{Matrix3, Vector3};
-use trn_geodesy::{Enu, Geodetic, LocalFrame};
+use nalgebra::{Matrix2, Matrix3, Vector2, Vector3};
+use trn_geodesy::Geodetic;
 use trn_landmark::{GeoBox, HeightGrid, Template, TemplateQuality, TerrainPatch};
 
 use crate::pyramid::Window;
@@ -82,14 +82,28 @@ pub fn extract(
     cand: &Candidate,
     p: &ExtractParams,
 ) -> Result<Template, Reject> {
-    let centre_ll = geo.lonlat(win, &[(cand.x as f64, cand.y as f64)]).ok_or(Reject::Transform)?[0];
-    let h_centre = dem.heights_ellipsoidal(&[centre_ll]).ok_or(Reject::NoDem)?[0];
-    let centre = Geodetic::new(centre_ll.1, centre_ll.0, h_centre);
-    let frame = LocalFrame::at(centre);
-    let half_m = (p.size_px as f64 - 1.0) / 2.0 * p.gsd_m;
-    let footprint_half_m = p.size_px as f64 / 2.0 * p.gsd_m;
+    // The centre and four points half a template away: a central-difference
+    // Jacobian of window pixels -> local metres. Over one template the map from
+    // the tangent plane to the ortho's pixels is affine to far below a pixel.
+    let (cx, cy) = (cand.x as f64, cand.y as f64);
+    let a = (p.size_px as f64 / 2.0).max(1.0);
+    let ll = geo
+        .lonlat(win, &[(cx, cy), (cx + a, cy), (cx - a, cy), (cx, cy + a), (cx, cy - a)])
+        .ok_or(Reject::Transform)?;
+    let centre_ll = ll[0];
+    let (m_lat, m_lon) = trn_geodesy::metres_per_degree(centre_ll.1);
+    let en_per_px = Matrix2::new(
+        (ll[1].0 - ll[2].0) * m_lon / (2.0 * a),
+        (ll[3].0 - ll[4].0) * m_lon / (2.0 * a),
+        (ll[1].1 - ll[2].1) * m_lat / (2.0 * a),
+        (ll[3].1 - ll[4].1) * m_lat / (2.0 * a),
+    );
+    let px_per_en = en_per_px.try_inverse().ok_or(Reject::Transform)?;
 
-    // Terrain: n x n grid over the footprint, row 0 north.
+    // Terrain: n x n grid over the footprint (row 0 north) plus the centre, in
+    // one DEM read. The local linear lat/lon map is within centimetres of exact
+    // geodesy over a template, far below a DEM cell.
+    let footprint_half_m = p.size_px as f64 / 2.0 * p.gsd_m;
     let n = p.height_grid_n.max(2) as usize;
     let spacing = 2.0 * footprint_half_m / (n as f64 - 1.0);
     let mut grid_en = Vec::with_capacity(n * n);
@@ -98,53 +112,38 @@ pub fn extract(
             grid_en.push((-footprint_half_m + c as f64 * spacing, footprint_half_m - r as f64 * spacing));
         }
     }
-    let lonlat_of = |en: &[(f64, f64)], up: &dyn Fn(usize) -> f64| -> Vec<(f64, f64)> {
-        en.iter()
-            .enumerate()
-            .map(|(i, &(e, nn))| {
-                let g = frame.to_ecef(Enu::new(e, nn, up(i))).to_geodetic();
-                (g.lon_deg, g.lat_deg)
-            })
-            .collect()
-    };
-    let grid_ll = lonlat_of(&grid_en, &|_| 0.0);
-    let hs = dem.heights_ellipsoidal(&grid_ll).ok_or(Reject::NoDem)?;
-    let mut heights = Vec::with_capacity(n * n);
-    for (i, &(lon, lat)) in grid_ll.iter().enumerate() {
-        let enu = frame.to_enu(&Geodetic::new(lat, lon, hs[i]).to_ecef());
-        heights.push(enu.up_m());
-    }
+    let mut sample_ll: Vec<(f64, f64)> =
+        grid_en.iter().map(|&(e, nn)| (centre_ll.0 + e / m_lon, centre_ll.1 + nn / m_lat)).collect();
+    sample_ll.push(centre_ll);
+    let hs = dem.heights_ellipsoidal(&sample_ll).ok_or(Reject::NoDem)?;
+    let h_centre = hs[n * n];
+    let centre = Geodetic::new(centre_ll.1, centre_ll.0, h_centre);
+    // Height above the tangent plane: the ellipsoid falls away from it by
+    // e^2 / 2N + n^2 / 2M (its principal curvatures), millimetre-exact here.
+    let (rn, rm) = (centre.prime_vertical_radius_m() + h_centre, centre.meridian_radius_m() + h_centre);
+    let heights: Vec<f64> = grid_en
+        .iter()
+        .zip(&hs)
+        .map(|(&(e, nn), &h)| h - h_centre - e * e / (2.0 * rn) - nn * nn / (2.0 * rm))
+        .collect();
     let (normal, rms) = fit_plane(&grid_en, &heights);
     if rms > p.max_plane_residual_m {
         return Err(Reject::Relief);
     }
-    let height_grid = HeightGrid {
-        n: n as u32,
-        spacing_m: spacing,
-        heights_m: heights.iter().map(|&h| h as f32).collect(),
-    };
-
-    // Affine map tangent plane (e, n) -> window pixel, fitted on 9 points on the terrain.
-    let mut fit_en = Vec::new();
-    for &fe in &[-1.0, 0.0, 1.0] {
-        for &fn_ in &[-1.0, 0.0, 1.0] {
-            fit_en.push((fe * half_m, fn_ * half_m));
-        }
-    }
-    let fit_ll = lonlat_of(&fit_en, &|i| height_grid.height_at(fit_en[i].0, fit_en[i].1));
-    let fit_px = geo.window_px(win, &fit_ll).ok_or(Reject::Transform)?;
-    let affine = fit_affine(&fit_en, &fit_px).ok_or(Reject::Transform)?;
+    let height_grid =
+        HeightGrid { n: n as u32, spacing_m: spacing, heights_m: heights.iter().map(|&h| h as f32).collect() };
 
     let size = p.size_px as usize;
     let mut pixels = Vec::with_capacity(size * size);
     let c0 = (size as f64 - 1.0) / 2.0;
     for row in 0..size {
+        let nn = (c0 - row as f64) * p.gsd_m;
         for col in 0..size {
             let e = (col as f64 - c0) * p.gsd_m;
-            let nn = (c0 - row as f64) * p.gsd_m;
-            let x = affine[0] * e + affine[1] * nn + affine[2];
-            let y = affine[3] * e + affine[4] * nn + affine[5];
-            pixels.push(bilinear(win, x, y)?.round().clamp(0.0, 255.0) as u8);
+            let d = px_per_en * Vector2::new(e, nn);
+            let v = bilinear(win, cx + d.x, cy + d.y)?;
+            // v is in 0..=255: adding a half and truncating rounds it.
+            pixels.push((v + 0.5) as u8);
         }
     }
 
@@ -176,13 +175,16 @@ pub fn extract(
 }
 
 fn bilinear(win: &Window, x: f64, y: f64) -> Result<f64, Reject> {
-    let (fx, fy) = (x.floor(), y.floor());
-    let (ix, iy) = (fx as isize, fy as isize);
-    if ix < 0 || iy < 0 || ix + 1 >= win.width as isize || iy + 1 >= win.height as isize {
+    if !(x >= 0.0 && y >= 0.0) {
         return Err(Reject::OutsideWindow);
     }
-    let (tx, ty) = (x - fx, y - fy);
-    let i = iy as usize * win.width + ix as usize;
+    // Truncation is floor for non-negative values (and avoids a libm call).
+    let (ix, iy) = (x as usize, y as usize);
+    if ix + 1 >= win.width || iy + 1 >= win.height {
+        return Err(Reject::OutsideWindow);
+    }
+    let (tx, ty) = (x - ix as f64, y - iy as f64);
+    let i = iy * win.width + ix;
     let j = i + win.width;
     if win.valid[i] & win.valid[i + 1] & win.valid[j] & win.valid[j + 1] == 0 {
         return Err(Reject::Nodata);
@@ -207,23 +209,6 @@ pub fn fit_plane(en: &[(f64, f64)], up: &[f64]) -> (Vector3<f64>, f64) {
             / en.len().max(1) as f64)
             .sqrt();
     (Vector3::new(-sol.x, -sol.y, 1.0).normalize(), rms)
-}
-
-/// Least-squares affine map (e, n) -> (x, y): `[a0 a1 a2; a3 a4 a5]`.
-fn fit_affine(en: &[(f64, f64)], px: &[(f64, f64)]) -> Option<[f64; 6]> {
-    let mut ata = Matrix3::zeros();
-    let mut bx = Vector3::zeros();
-    let mut by = Vector3::zeros();
-    for (&(e, n), &(x, y)) in en.iter().zip(px) {
-        let row = Vector3::new(e, n, 1.0);
-        ata += row * row.transpose();
-        bx += row * x;
-        by += row * y;
-    }
-    let lu = ata.lu();
-    let sx = lu.solve(&bx)?;
-    let sy = lu.solve(&by)?;
-    Some([sx.x, sx.y, sx.z, sy.x, sy.y, sy.z])
 }
 
 #[cfg(test)]

@@ -20,6 +20,7 @@ pub mod terrain;
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc::SyncSender;
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
@@ -245,53 +246,58 @@ pub fn build(opts: &BuildOptions, cancel: &AtomicBool) -> Result<BuildReport> {
     });
     info!("levels: {levels}, GSD {base_gsd} m x 2^level");
 
-    let mut all: Vec<Template> = Vec::new();
-    let mut rejected: HashMap<String, usize> = HashMap::new();
-    let mut candidates = 0usize;
-    for g in &groups {
-        let (t, r, c) = build_group(opts, g, &dems, base_gsd, levels, work.path(), cancel)?;
-        all.extend(t);
-        for (k, v) in r {
-            *rejected.entry(format!("{k:?}")).or_default() += v;
-        }
-        candidates += c;
-    }
-    if groups.len() > 1 {
-        let before = all.len();
-        all = dedupe(all, opts);
-        info!("dropped {} duplicate templates where mosaics overlap", before - all.len());
-    }
-    info!("{candidates} candidates passed texture and uniqueness; rejected after: {rejected:?}");
-    if all.is_empty() {
-        return Err(BuildError::NoTemplates);
-    }
-    all.sort_by(|a, b| (a.level, a.center.lat_deg.to_bits()).cmp(&(b.level, b.center.lat_deg.to_bits())));
-
-    // Write to a temporary database next to the output; rename only on success.
+    // The database is written to a temporary file next to the output by its own
+    // thread while tiles are processed, and renamed into place only on success.
     let tmp_db = work.path().join("landmarks.gpkg");
     let mut writer = trn_store::DbWriter::create(&tmp_db)?;
-    let meta = metadata(opts, &groups, &dems, base_gsd, levels);
-    for (k, v) in meta {
+    for (k, v) in metadata(opts, &groups, &dems, base_gsd, levels) {
         writer.set_metadata(&k, &v)?;
     }
-    for chunk in all.chunks_mut(2000) {
-        if cancel.load(Ordering::Relaxed) {
+    let (tx, rx) = std::sync::mpsc::sync_channel::<Vec<Template>>(64);
+    let abort = Arc::new(AtomicBool::new(false));
+    let writer_abort = abort.clone();
+    let writer_thread = std::thread::spawn(move || -> Result<trn_store::DbSummary> {
+        for mut batch in rx {
+            if writer_abort.load(Ordering::Relaxed) {
+                return Err(BuildError::Cancelled);
+            }
+            writer.insert_batch(&mut batch)?;
+        }
+        if writer_abort.load(Ordering::Relaxed) {
             return Err(BuildError::Cancelled);
         }
-        writer.insert_batch(chunk)?;
+        Ok(writer.finish()?)
+    });
+    let selected = select_all(opts, &groups, &dems, base_gsd, levels, work.path(), cancel, &tx);
+    drop(tx);
+    let (candidates, rejected) = match selected {
+        Ok(r) => r,
+        Err(e) => {
+            abort.store(true, Ordering::Relaxed);
+            // The writer's own error explains a closed channel better.
+            return match writer_thread.join() {
+                Ok(Err(we)) if matches!(e, BuildError::WriterStopped) => Err(we),
+                _ => Err(e),
+            };
+        }
+    };
+    info!("selection done at {:.2} s", started.elapsed().as_secs_f64());
+    let summary = writer_thread.join().map_err(|_| BuildError::WriterStopped)??;
+    info!("{candidates} candidates passed texture and uniqueness; rejected after: {rejected:?}");
+    if summary.template_count == 0 {
+        return Err(BuildError::NoTemplates);
     }
-    writer.finish()?;
-    std::fs::rename(&tmp_db, &opts.out)
-        .map_err(|source| BuildError::Io { path: opts.out.clone(), source })?;
+    std::fs::rename(&tmp_db, &opts.out).map_err(|source| BuildError::Io { path: opts.out.clone(), source })?;
 
-    let mut per_level = Vec::new();
-    for k in 0..levels {
-        let n = all.iter().filter(|t| t.level == k).count();
-        per_level.push((k, base_gsd * 2f64.powi(k as i32), n));
-    }
+    let per_level = (0..levels)
+        .map(|k| {
+            let n = summary.levels.iter().find(|l| l.level == k).map(|l| l.count as usize).unwrap_or(0);
+            (k, base_gsd * 2f64.powi(k as i32), n)
+        })
+        .collect();
     let report = BuildReport {
         out: opts.out.clone(),
-        templates: all.len(),
+        templates: summary.template_count as usize,
         levels: per_level,
         candidates,
         rejected,
@@ -299,6 +305,44 @@ pub fn build(opts: &BuildOptions, cancel: &AtomicBool) -> Result<BuildReport> {
     };
     info!("wrote {} templates to {} in {:.1} s", report.templates, opts.out.display(), report.seconds);
     Ok(report)
+}
+
+/// Runs the selection over every ortho group, sending templates to the writer:
+/// straight away from one group, after removing duplicates from several.
+#[allow(clippy::too_many_arguments)]
+fn select_all(
+    opts: &BuildOptions,
+    groups: &[OrthoGroup],
+    dems: &[DemSpec],
+    base_gsd: f64,
+    levels: u8,
+    work: &Path,
+    cancel: &AtomicBool,
+    tx: &SyncSender<Vec<Template>>,
+) -> Result<(usize, HashMap<String, usize>)> {
+    let stream = groups.len() == 1;
+    let mut all: Vec<Template> = Vec::new();
+    let mut rejected: HashMap<String, usize> = HashMap::new();
+    let mut candidates = 0usize;
+    for g in groups {
+        let (t, r, c) = build_group(opts, g, dems, base_gsd, levels, work, cancel, stream.then_some(tx))?;
+        all.extend(t);
+        for (k, v) in r {
+            *rejected.entry(format!("{k:?}")).or_default() += v;
+        }
+        candidates += c;
+    }
+    if !stream {
+        let before = all.len();
+        all = dedupe(all, opts);
+        info!("dropped {} duplicate templates where mosaics overlap", before - all.len());
+        all.sort_by(|a, b| (a.level, a.center.lat_deg.to_bits()).cmp(&(b.level, b.center.lat_deg.to_bits())));
+        while !all.is_empty() {
+            let rest = all.split_off(all.len().min(2000));
+            tx.send(std::mem::replace(&mut all, rest)).map_err(|_| BuildError::WriterStopped)?;
+        }
+    }
+    Ok((candidates, rejected))
 }
 
 fn open_dems(opts: &BuildOptions) -> Result<Vec<DemSpec>> {
@@ -475,6 +519,7 @@ fn build_group(
     levels: u8,
     work: &Path,
     cancel: &AtomicBool,
+    sink: Option<&SyncSender<Vec<Template>>>,
 ) -> Result<(Vec<Template>, HashMap<Reject, usize>, usize)> {
     let native = g.info.pixel_dx_m.max(g.info.pixel_dy_m);
     // Pyramid level p whose pixels are at most as coarse as template level k.
@@ -568,7 +613,7 @@ fn build_group(
             })
             .unwrap_or(0);
         let tiles = tiles_of(p);
-        let results: Vec<Result<(Vec<Template>, usize)>> = tiles
+        let results: Vec<Result<(Vec<Template>, usize, usize)>> = tiles
             .par_iter()
             .map(|&(x0, x1, y0, y1)| {
                 if cancel.load(Ordering::Relaxed) {
@@ -596,29 +641,31 @@ fn build_group(
                         next.write(x0 / 2, y0 / 2, nw, &lum, &valid)?;
                     }
                 }
-                let out = match plan {
+                let (mut t, c) = match plan {
                     Some(l) => {
                         tile_templates(&win, margin, (x1 - x0, y1 - y0), &l, g, worker, opts, &rejects)
                     }
                     None => (Vec::new(), 0),
                 };
+                let n = t.len();
+                if let Some(tx) = sink {
+                    if !t.is_empty() {
+                        tx.send(std::mem::take(&mut t)).map_err(|_| BuildError::WriterStopped)?;
+                    }
+                }
                 bar.inc(1);
-                Ok(out)
+                Ok((t, c, n))
             })
             .collect();
+        let mut level_count = 0;
         for r in results {
-            let (t, c) = r?;
+            let (t, c, n) = r?;
             templates.extend(t);
             candidates += c;
+            level_count += n;
         }
         if let Some(l) = plan {
-            info!(
-                "level {} (GSD {:.2} m): {} templates so far from {}",
-                l.level,
-                l.gsd_m,
-                templates.iter().filter(|t: &&Template| t.level == l.level).count(),
-                g.info.path.display()
-            );
+            info!("level {} (GSD {:.2} m): {level_count} templates from {}", l.level, l.gsd_m, g.info.path.display());
         }
         prev = next;
     }
@@ -743,7 +790,7 @@ fn metadata(
     let created =
         std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs()).unwrap_or(0);
     vec![
-        ("orthos".into(), json!(sources)),
+        ("sources".into(), json!(sources)),
         ("dems".into(), json!(dem_meta)),
         ("height_reference".into(), json!("WGS84 ellipsoid")),
         ("parameters".into(), serde_json::to_value(opts).unwrap_or_default()),

@@ -105,71 +105,115 @@ pub fn box_sum(
     out
 }
 
-/// Per-pixel selection measures of a window, on the grid of every `stride`-th pixel.
+/// Selection measures of a window on a grid of `stride x stride` pixel blocks.
+/// Entry `(bx, by)` describes the template window centred at pixel
+/// [`Measures::centre`]`(bx, by)`.
 pub struct Measures {
     pub stride: usize,
     pub grid_w: usize,
+    pub grid_h: usize,
+    /// Template window in blocks.
+    pub win_blocks_w: usize,
+    pub win_blocks_h: usize,
     pub shi_tomasi: Vec<f32>,
     pub contrast_std: Vec<f32>,
-    /// Window fully valid and not too saturated.
+    /// Window (plus a block on each side, for resampling) fully valid and not too saturated.
     pub usable: Vec<bool>,
 }
 
 impl Measures {
-    fn index(&self, x: usize, y: usize) -> usize {
-        (y / self.stride) * self.grid_w + x / self.stride
+    /// Window pixel at the centre of the template window of block entry (bx, by).
+    pub fn centre(&self, bx: usize, by: usize) -> Option<(usize, usize)> {
+        let x = (bx.checked_sub(self.win_blocks_w / 2)?) * self.stride + self.win_blocks_w * self.stride / 2;
+        let y = (by.checked_sub(self.win_blocks_h / 2)?) * self.stride + self.win_blocks_h * self.stride / 2;
+        Some((x, y))
     }
 }
 
-/// Candidate centres are taken on a 2-pixel grid: a quarter of the work, and a
-/// landmark's exact centre does not matter.
-pub const GRID_STRIDE: usize = 2;
+/// Candidate centres lie on a 4-pixel grid: the measures are box sums of 4x4
+/// block sums, a sixteenth of the work of per-pixel windows, and a landmark's
+/// exact centre does not matter.
+pub const GRID_STRIDE: usize = 4;
 
 pub fn measures(img: &LumWindow, p: &SelectParams) -> Measures {
+    let s = GRID_STRIDE;
     let (w, h) = (img.width, img.height);
-    let n = w * h;
-    let mut gxx = vec![0f32; n];
-    let mut gyy = vec![0f32; n];
-    let mut gxy = vec![0f32; n];
-    // Invalid pixels weigh INVALID, saturated ones 1: one box sum tells both.
+    let (bw, bh) = (w / s, h / s);
+    let nb = bw * bh;
+    // Invalid pixels weigh INVALID, saturated ones 1: one sum tells both.
     const INVALID: f32 = 4096.0;
-    let mut bad = vec![0f32; n];
-    let mut lum2 = vec![0f32; n];
-    for y in 0..h {
-        for x in 0..w {
-            let i = y * w + x;
-            let v = img.lum[i];
-            bad[i] = if img.valid[i] == 0 {
-                INVALID
-            } else if !(5.0..250.0).contains(&v) {
-                1.0
-            } else {
-                0.0
-            };
-            lum2[i] = v * v;
-            if x > 0 && x + 1 < w && y > 0 && y + 1 < h {
-                let gx = 0.5 * (img.lum[i + 1] - img.lum[i - 1]);
-                let gy = 0.5 * (img.lum[i + w] - img.lum[i - w]);
-                gxx[i] = gx * gx;
-                gyy[i] = gy * gy;
-                gxy[i] = gx * gy;
+    let mut bxx = vec![0f32; nb];
+    let mut byy = vec![0f32; nb];
+    let mut bxy = vec![0f32; nb];
+    let mut b1 = vec![0f32; nb];
+    let mut b2 = vec![0f32; nb];
+    let mut bbad = vec![0f32; nb];
+    // Row by row: plain element-wise passes (vectorised), then 4-pixel block sums.
+    let used_w = bw * s;
+    let mut gx = vec![0f32; used_w];
+    let mut gy = vec![0f32; used_w];
+    let mut prods = [vec![0f32; used_w], vec![0f32; used_w], vec![0f32; used_w], vec![0f32; used_w]];
+    let mut badrow = vec![0f32; used_w];
+    for y in 0..bh * s {
+        let row = &img.lum[y * w..y * w + used_w];
+        let vrow = &img.valid[y * w..y * w + used_w];
+        // Central differences; zero on the window's border (never a candidate's window).
+        gx.iter_mut().for_each(|g| *g = 0.0);
+        gy.iter_mut().for_each(|g| *g = 0.0);
+        if y > 0 && y + 1 < h {
+            let (up, down) = (&img.lum[(y - 1) * w..(y - 1) * w + used_w], &img.lum[(y + 1) * w..(y + 1) * w + used_w]);
+            for x in 0..used_w {
+                gy[x] = 0.5 * (down[x] - up[x]);
+            }
+            // The full row: the gradient at the last used pixel needs its right neighbour.
+            let full = &img.lum[y * w..(y + 1) * w];
+            let end = used_w.min(w - 1);
+            for x in 1..end {
+                gx[x] = 0.5 * (full[x + 1] - full[x - 1]);
+            }
+            gy[0] = 0.0;
+            if end < used_w {
+                gy[used_w - 1] = 0.0;
             }
         }
+        let [pxx, pyy, pxy, p2] = &mut prods;
+        for x in 0..used_w {
+            pxx[x] = gx[x] * gx[x];
+            pyy[x] = gy[x] * gy[x];
+            pxy[x] = gx[x] * gy[x];
+            p2[x] = row[x] * row[x];
+            let sat = if row[x] < 5.0 || row[x] >= 250.0 { 1.0 } else { 0.0 };
+            badrow[x] = if vrow[x] == 0 { INVALID } else { sat };
+        }
+        let k0 = (y / s) * bw;
+        let block = |src: &[f32], dst: &mut [f32]| {
+            for (d, c) in dst[k0..k0 + bw].iter_mut().zip(src.chunks_exact(s)) {
+                *d += c.iter().sum::<f32>();
+            }
+        };
+        block(&prods[0], &mut bxx);
+        block(&prods[1], &mut byy);
+        block(&prods[2], &mut bxy);
+        block(row, &mut b1);
+        block(&prods[3], &mut b2);
+        block(&badrow, &mut bbad);
     }
-    let (ww, wh, st) = (p.win_w, p.win_h, GRID_STRIDE);
-    let area = (ww * wh) as f32;
-    let sxx = box_sum(&gxx, w, h, ww, wh, st);
-    let syy = box_sum(&gyy, w, h, ww, wh, st);
-    let sxy = box_sum(&gxy, w, h, ww, wh, st);
-    let s1 = box_sum(img.lum, w, h, ww, wh, st);
-    let s2 = box_sum(&lum2, w, h, ww, wh, st);
-    // One pixel more on each side: bilinear resampling reaches past the window.
-    let sbad = box_sum(&bad, w, h, ww + 2, wh + 2, st);
-    let g = sxx.len();
-    let mut shi_tomasi = vec![0f32; g];
-    let mut contrast_std = vec![0f32; g];
-    let mut usable = vec![false; g];
-    for i in 0..g {
+    let kw = (p.win_w as f64 / s as f64).round().max(1.0) as usize;
+    let kh = (p.win_h as f64 / s as f64).round().max(1.0) as usize;
+    let area = (kw * kh * s * s) as f32;
+    let sxx = box_sum(&bxx, bw, bh, kw, kh, 1);
+    let syy = box_sum(&byy, bw, bh, kw, kh, 1);
+    let sxy = box_sum(&bxy, bw, bh, kw, kh, 1);
+    let s1 = box_sum(&b1, bw, bh, kw, kh, 1);
+    let s2 = box_sum(&b2, bw, bh, kw, kh, 1);
+    // One block more on each side (same centre): bilinear resampling and the
+    // exact template window reach a little past the measured window.
+    let sbad = box_sum(&bbad, bw, bh, kw + 2, kh + 2, 1);
+    let bad_area = ((kw + 2) * (kh + 2) * s * s) as f32;
+    let mut shi_tomasi = vec![0f32; nb];
+    let mut contrast_std = vec![0f32; nb];
+    let mut usable = vec![false; nb];
+    for i in 0..nb {
         if sxx[i].is_nan() || sbad[i].is_nan() {
             continue;
         }
@@ -180,9 +224,31 @@ pub fn measures(img: &LumWindow, p: &SelectParams) -> Measures {
         let var = (s2[i] / area - mean * mean).max(0.0);
         shi_tomasi[i] = lmin;
         contrast_std[i] = var.sqrt();
-        usable[i] = sbad[i] < INVALID - 0.5 && sbad[i] / ((ww + 2) * (wh + 2)) as f32 <= p.max_saturated;
+        usable[i] = sbad[i] < INVALID - 0.5 && sbad[i] / bad_area <= p.max_saturated;
     }
-    Measures { stride: st, grid_w: w.div_ceil(st), shi_tomasi, contrast_std, usable }
+    Measures {
+        stride: s,
+        grid_w: bw,
+        grid_h: bh,
+        win_blocks_w: kw,
+        win_blocks_h: kh,
+        shi_tomasi,
+        contrast_std,
+        usable,
+    }
+}
+
+/// 2x2 mean of a window (for the coarse uniqueness pass).
+pub fn half_resolution(img: &LumWindow) -> (Vec<f32>, usize, usize) {
+    let (hw, hh) = (img.width / 2, img.height / 2);
+    let mut out = vec![0f32; hw * hh];
+    for y in 0..hh {
+        let (r0, r1) = (&img.lum[2 * y * img.width..], &img.lum[(2 * y + 1) * img.width..]);
+        for x in 0..hw {
+            out[y * hw + x] = 0.25 * (r0[2 * x] + r0[2 * x + 1] + r1[2 * x] + r1[2 * x + 1]);
+        }
+    }
+    (out, hw, hh)
 }
 
 /// A template cut from a window, zero-mean, sampled every `step`-th pixel.
@@ -234,24 +300,34 @@ impl Patch {
         }
         let (sx0, sy0) = (sx0 as usize, sy0 as usize);
         let cols = self.win_w.div_ceil(self.step);
-        let (mut ts, mut ss, mut s1) = (0f32, 0f32, 0f32);
+        // Eight independent lanes: the compiler vectorises these sums.
+        let (mut ts, mut ss, mut s1) = ([0f32; 8], [0f32; 8], [0f32; 8]);
+        let mut lane = |t: f32, s: f32, k: usize| {
+            ts[k] += t * s;
+            ss[k] += s * s;
+            s1[k] += s;
+        };
         for (k, r) in (0..self.win_h).step_by(self.step).enumerate() {
             let srow = &img.lum[(sy0 + r) * img.width + sx0..][..self.win_w];
             let trow = &self.values[k * cols..(k + 1) * cols];
             if self.step == 1 {
-                for (&t, &s) in trow.iter().zip(srow) {
-                    ts += t * s;
-                    ss += s * s;
-                    s1 += s;
+                let (tc, sc) = (trow.chunks_exact(8), srow.chunks_exact(8));
+                let (tr, sr) = (tc.remainder(), sc.remainder());
+                for (t8, s8) in tc.zip(sc) {
+                    for k in 0..8 {
+                        lane(t8[k], s8[k], k);
+                    }
+                }
+                for (&t, &s) in tr.iter().zip(sr) {
+                    lane(t, s, 0);
                 }
             } else {
                 for (&t, &s) in trow.iter().zip(srow.iter().step_by(self.step)) {
-                    ts += t * s;
-                    ss += s * s;
-                    s1 += s;
+                    lane(t, s, 0);
                 }
             }
         }
+        let (ts, ss, s1): (f32, f32, f32) = (ts.iter().sum(), ss.iter().sum(), s1.iter().sum());
         // Sum of t' * s equals sum of t' * (s - mean s) because t' has zero mean.
         let n = self.values.len() as f32;
         let vs = ss - s1 * s1 / n;
@@ -278,38 +354,46 @@ pub fn ncc_shift(
     Patch::new(img, cx, cy, win_w, win_h, step)?.ncc(img, dx, dy)
 }
 
-/// Highest NCC of the template at (cx, cy) against shifts within `radius`,
-/// outside the main correlation lobe. The lobe is the connected region of shifts
-/// around (0, 0) where the NCC decreases monotonically outwards, approximated by
-/// the shifts with |d| <= `exclude` (2 px covers the lobe of textured,
-/// band-limited imagery). Shifts are evaluated on a grid of `step`.
-pub fn second_peak(
-    img: &LumWindow,
-    cx: usize,
-    cy: usize,
-    p: &SelectParams,
-    exclude: isize,
-    step: usize,
-) -> f32 {
-    let Some(patch) = Patch::new(img, cx, cy, p.win_w, p.win_h, step) else {
+/// Highest NCC of the template at (cx, cy) against its surroundings within
+/// the search radius, outside its own correlation peak. The own peak (main
+/// lobe) is every shift reachable from (0, 0) by steps that never go uphill on
+/// the NCC surface; anything else sits beyond a valley and so belongs to
+/// another peak or a ridge. Smooth imagery thus keeps its wide main lobe, while
+/// repeated patterns and edges (ridges) score high.
+pub fn second_peak(img: &LumWindow, cx: usize, cy: usize, p: &SelectParams) -> f32 {
+    let Some(patch) = Patch::new(img, cx, cy, p.win_w, p.win_h, 1) else {
         return 1.0;
     };
     let r = p.search_radius as isize;
-    let mut best = -1f32;
-    let mut dy = -r;
-    while dy <= r {
-        let mut dx = -r;
-        while dx <= r {
-            if dx.abs().max(dy.abs()) > exclude {
-                if let Some(v) = patch.ncc(img, dx, dy) {
-                    best = best.max(v);
-                }
+    let side = (2 * r + 1) as usize;
+    let mut surface = vec![f32::NAN; side * side];
+    for dy in -r..=r {
+        for dx in -r..=r {
+            if let Some(v) = patch.ncc(img, dx, dy) {
+                surface[(dy + r) as usize * side + (dx + r) as usize] = v;
             }
-            dx += step as isize;
         }
-        dy += step as isize;
     }
-    best
+    // Flood the main lobe downhill from the centre.
+    let mut lobe = vec![false; side * side];
+    let centre = r as usize * side + r as usize;
+    let mut stack = vec![centre];
+    lobe[centre] = true;
+    while let Some(i) = stack.pop() {
+        let (x, y) = ((i % side) as isize, (i / side) as isize);
+        for (ddx, ddy) in [(-1, -1), (0, -1), (1, -1), (-1, 0), (1, 0), (-1, 1), (0, 1), (1, 1)] {
+            let (nx, ny) = (x + ddx, y + ddy);
+            if nx < 0 || ny < 0 || nx >= side as isize || ny >= side as isize {
+                continue;
+            }
+            let j = ny as usize * side + nx as usize;
+            if !lobe[j] && surface[j] <= surface[i] {
+                lobe[j] = true;
+                stack.push(j);
+            }
+        }
+    }
+    surface.iter().zip(&lobe).filter(|(v, l)| !**l && v.is_finite()).map(|(v, _)| *v).fold(-1.0, f32::max)
 }
 
 /// The part of a window whose pixels a tile owns (half-open, window pixels).
@@ -326,66 +410,62 @@ pub struct Core {
 /// Selects up to `per_cell` landmarks in each cell of the core.
 pub fn select(img: &LumWindow, p: &SelectParams, core: Core) -> Vec<Candidate> {
     let m = measures(img, p);
-    let mut out = Vec::new();
-    let mut cy0 = core.y0;
-    while cy0 < core.y1 {
-        let cy1 = (cy0 + p.cell_h).min(core.y1);
-        let mut cx0 = core.x0;
-        while cx0 < core.x1 {
-            let cx1 = (cx0 + p.cell_w).min(core.x1);
-            // Best few positions in the cell, strongest texture first.
-            let mut cell: Vec<(f32, usize, usize)> = Vec::new();
-            for y in (cy0.next_multiple_of(m.stride)..cy1).step_by(m.stride) {
-                for x in (cx0.next_multiple_of(m.stride)..cx1).step_by(m.stride) {
-                    let i = m.index(x, y);
-                    if m.usable[i]
-                        && m.shi_tomasi[i] >= p.min_shi_tomasi
-                        && m.contrast_std[i] >= p.min_contrast_std
-                    {
-                        cell.push((m.shi_tomasi[i], x, y));
-                    }
-                }
+    let (half, hw, hh) = half_resolution(img);
+    let valid_half = vec![1u8; hw * hh];
+    let coarse_img = LumWindow { width: hw, height: hh, lum: &half, valid: &valid_half };
+    let coarse_p = SelectParams {
+        win_w: (p.win_w / 2).max(2),
+        win_h: (p.win_h / 2).max(2),
+        search_radius: (p.search_radius / 2).max(2),
+        ..*p
+    };
+    // Block entries by the cell their centre falls in (cells of the core only).
+    let cells_x = (core.x1 - core.x0).div_ceil(p.cell_w);
+    let cells_y = (core.y1 - core.y0).div_ceil(p.cell_h);
+    let mut cells: Vec<Vec<(f32, f32, usize, usize)>> = vec![Vec::new(); cells_x * cells_y];
+    for by in 0..m.grid_h {
+        for bx in 0..m.grid_w {
+            let i = by * m.grid_w + bx;
+            if !(m.usable[i] && m.shi_tomasi[i] >= p.min_shi_tomasi && m.contrast_std[i] >= p.min_contrast_std) {
+                continue;
             }
-            // Only the strongest few are ever tried: a partial sort is enough.
-            let keep = 32 * p.per_cell;
-            if cell.len() > keep {
-                cell.select_nth_unstable_by(keep, |a, b| b.0.total_cmp(&a.0));
-                cell.truncate(keep);
+            let Some((x, y)) = m.centre(bx, by) else { continue };
+            if x < core.x0 || x >= core.x1 || y < core.y0 || y >= core.y1 {
+                continue;
             }
-            cell.sort_unstable_by(|a, b| b.0.total_cmp(&a.0));
-            let mut taken: Vec<(usize, usize)> = Vec::new();
-            let min_sep = (p.win_w.min(p.win_h) / 2).max(1);
-            let mut tried = 0;
-            for &(st, x, y) in &cell {
-                if taken.len() >= p.per_cell || tried >= 3 * p.per_cell {
-                    break;
-                }
-                if taken.iter().any(|&(tx, ty)| tx.abs_diff(x).max(ty.abs_diff(y)) < min_sep) {
-                    continue;
-                }
-                tried += 1;
-                // Coarse pass on a 2-pixel grid, exact pass only when it is close.
-                let coarse = second_peak(img, x, y, p, 2, 2);
-                if coarse > p.max_second_peak {
-                    continue;
-                }
-                let sp =
-                    if coarse > p.max_second_peak - 0.15 { second_peak(img, x, y, p, 2, 1) } else { coarse };
-                if sp > p.max_second_peak {
-                    continue;
-                }
-                taken.push((x, y));
-                out.push(Candidate {
-                    x,
-                    y,
-                    shi_tomasi: st,
-                    contrast_std: m.contrast_std[m.index(x, y)],
-                    second_peak_ncc: sp,
-                });
-            }
-            cx0 = cx1;
+            let c = ((y - core.y0) / p.cell_h) * cells_x + (x - core.x0) / p.cell_w;
+            cells[c].push((m.shi_tomasi[i], m.contrast_std[i], x, y));
         }
-        cy0 = cy1;
+    }
+    let mut out = Vec::new();
+    let min_sep = (p.win_w.min(p.win_h) / 2).max(1);
+    for mut cell in cells {
+        // Only the strongest few are ever tried: a partial sort is enough.
+        let keep = 32 * p.per_cell;
+        if cell.len() > keep {
+            cell.select_nth_unstable_by(keep, |a, b| b.0.total_cmp(&a.0));
+            cell.truncate(keep);
+        }
+        cell.sort_unstable_by(|a, b| b.0.total_cmp(&a.0));
+        let mut taken: Vec<(usize, usize)> = Vec::new();
+        let mut tried = 0;
+        for &(st, contrast_std, x, y) in &cell {
+            if taken.len() >= p.per_cell || tried >= 3 * p.per_cell {
+                break;
+            }
+            if taken.iter().any(|&(tx, ty)| tx.abs_diff(x).max(ty.abs_diff(y)) < min_sep) {
+                continue;
+            }
+            tried += 1;
+            // Uniqueness is judged at half resolution: a sixteenth of the work, and
+            // low-passing tends to raise a competing peak rather than hide it.
+            let sp = second_peak(&coarse_img, x / 2, y / 2, &coarse_p);
+            if sp > p.max_second_peak {
+                continue;
+            }
+            taken.push((x, y));
+            out.push(Candidate { x, y, shi_tomasi: st, contrast_std, second_peak_ncc: sp });
+        }
     }
     out
 }
@@ -495,6 +575,72 @@ mod tests {
     }
 
     #[test]
+    fn measures_match_brute_force_windows() {
+        // Width and height not multiples of the block size.
+        let (w, h) = (67, 53);
+        let lum = noise(w, h, 21);
+        let valid = vec![1u8; w * h];
+        let img = LumWindow { width: w, height: h, lum: &lum, valid: &valid };
+        let p = SelectParams { win_w: 16, win_h: 12, ..params() };
+        let m = measures(&img, &p);
+        let (ww, wh) = (m.win_blocks_w * GRID_STRIDE, m.win_blocks_h * GRID_STRIDE);
+        let mut checked = 0;
+        for by in 0..m.grid_h {
+            for bx in 0..m.grid_w {
+                let i = by * m.grid_w + bx;
+                let Some((cx, cy)) = m.centre(bx, by) else { continue };
+                if m.shi_tomasi[i] == 0.0 && !m.usable[i] {
+                    continue;
+                }
+                let (x0, y0) = (cx - ww / 2, cy - wh / 2);
+                let (mut a, mut b, mut c, mut s1, mut s2) = (0f64, 0f64, 0f64, 0f64, 0f64);
+                for y in y0..y0 + wh {
+                    for x in x0..x0 + ww {
+                        let v = lum[y * w + x] as f64;
+                        s1 += v;
+                        s2 += v * v;
+                        if x > 0 && x + 1 < w && y > 0 && y + 1 < h {
+                            let gx = 0.5 * (lum[y * w + x + 1] - lum[y * w + x - 1]) as f64;
+                            let gy = 0.5 * (lum[(y + 1) * w + x] - lum[(y - 1) * w + x]) as f64;
+                            a += gx * gx;
+                            b += gx * gy;
+                            c += gy * gy;
+                        }
+                    }
+                }
+                let n = (ww * wh) as f64;
+                let (a, b, c) = (a / n, b / n, c / n);
+                let lmin = 0.5 * (a + c) - (0.25 * (a - c) * (a - c) + b * b).sqrt();
+                let std = (s2 / n - (s1 / n).powi(2)).sqrt();
+                assert!((m.shi_tomasi[i] as f64 - lmin).abs() < 1e-3 * lmin.max(1.0), "{} vs {lmin}", m.shi_tomasi[i]);
+                assert!((m.contrast_std[i] as f64 - std).abs() < 1e-2, "{} vs {std}", m.contrast_std[i]);
+                checked += 1;
+            }
+        }
+        assert!(checked > 20);
+    }
+
+    #[test]
+    fn edges_are_ridges_and_smooth_blobs_keep_their_wide_lobe() {
+        let (w, h) = (60, 60);
+        let valid = vec![1u8; w * h];
+        // A vertical edge: shifting along it changes nothing (a ridge), so not unique.
+        let noise = noise(w, h, 4);
+        let edge: Vec<f32> = (0..w * h).map(|i| if i % w < 30 { 60.0 } else { 160.0 } + 0.01 * noise[i]).collect();
+        let img = LumWindow { width: w, height: h, lum: &edge, valid: &valid };
+        assert!(second_peak(&img, 30, 30, &params()) > 0.95);
+        // One smooth bump: the NCC falls off slowly but never rises again.
+        let bump: Vec<f32> = (0..w * h)
+            .map(|i| {
+                let (x, y) = ((i % w) as f32 - 30.0, (i / w) as f32 - 30.0);
+                50.0 + 150.0 * (-(x * x + y * y) / 72.0).exp()
+            })
+            .collect();
+        let img = LumWindow { width: w, height: h, lum: &bump, valid: &valid };
+        assert!(second_peak(&img, 30, 30, &params()) < 0.5);
+    }
+
+    #[test]
     fn periodic_texture_is_not_unique() {
         // A pattern repeating every 4 pixels correlates perfectly at a 4-pixel shift.
         let (w, h) = (60, 60);
@@ -503,7 +649,7 @@ mod tests {
         let valid = vec![1u8; w * h];
         let img = LumWindow { width: w, height: h, lum: &lum, valid: &valid };
         assert!(select(&img, &params(), Core { x0: 0, x1: w, y0: 0, y1: h }).is_empty());
-        let sp = second_peak(&img, 30, 30, &params(), 2, 1);
+        let sp = second_peak(&img, 30, 30, &params());
         assert!(sp > 0.999);
     }
 }

@@ -59,19 +59,30 @@ pub struct SynthGrid {
     pub height: usize,
 }
 
+/// How a synthetic GeoTIFF is compressed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Compression {
+    /// Lossless DEFLATE tiles.
+    Deflate,
+    /// JPEG in YCbCr, quality 90: how USGS NAIP orthoimagery is distributed.
+    Jpeg,
+}
+
 /// An ortho: field patchwork with texture and roads, as RGB (or grey) bytes,
-/// tiled and DEFLATE-compressed like a cloud-optimised USGS product.
+/// tiled and compressed like a cloud-optimised USGS product.
 pub fn write_ortho(
     path: &Path,
     grid: &SynthGrid,
     bands: usize,
     seed: u64,
     nodata_border: usize,
+    compression: Compression,
 ) -> Result<()> {
     let fields = Fbm { seed, octaves: 2, scale: 180.0 };
     let texture = Fbm { seed: seed + 1, octaves: 5, scale: 24.0 };
     let tint = Fbm { seed: seed + 2, octaves: 2, scale: 400.0 };
-    write_raster::<u8>(path, grid, bands, Some(0.0), |x, y, b| {
+    let nodata = (nodata_border > 0).then_some(0.0);
+    write_raster::<u8>(path, grid, bands, nodata, compression, |x, y, b| {
         if x < nodata_border
             || y < nodata_border
             || x + nodata_border >= grid.width
@@ -97,7 +108,7 @@ pub fn write_ortho(
 /// A DEM: rolling fBm hills, heights in metres, Float32.
 pub fn write_dem(path: &Path, grid: &SynthGrid, seed: u64, base_m: f64, relief_m: f64) -> Result<()> {
     let hills = Fbm { seed, octaves: 4, scale: 64.0 };
-    write_raster::<f32>(path, grid, 1, Some(-9999.0), |x, y, _| {
+    write_raster::<f32>(path, grid, 1, Some(-9999.0), Compression::Deflate, |x, y, _| {
         (base_m + relief_m * hills.at(x as f64, y as f64)) as f32
     })
 }
@@ -107,15 +118,22 @@ fn write_raster<T: gdal::raster::GdalType + Copy + Default + Send>(
     grid: &SynthGrid,
     bands: usize,
     nodata: Option<f64>,
+    compression: Compression,
     value: impl Fn(usize, usize, usize) -> T + Sync,
 ) -> Result<()> {
     use rayon::prelude::*;
     let err = |e: gdal::errors::GdalError| BuildError::Read { path: path.into(), reason: e.to_string() };
     let driver = DriverManager::get_driver_by_name("GTiff").map_err(err)?;
     let mut opts = RasterCreationOptions::new();
-    for (k, v) in
-        [("TILED", "YES"), ("COMPRESS", "DEFLATE"), ("BIGTIFF", "IF_SAFER"), ("INTERLEAVE", "PIXEL")]
-    {
+    let mut pairs = vec![("TILED", "YES"), ("BLOCKXSIZE", "512"), ("BLOCKYSIZE", "512"), ("BIGTIFF", "IF_SAFER")];
+    match compression {
+        Compression::Deflate => pairs.extend([("COMPRESS", "DEFLATE"), ("INTERLEAVE", "PIXEL")]),
+        Compression::Jpeg if bands == 3 => {
+            pairs.extend([("COMPRESS", "JPEG"), ("PHOTOMETRIC", "YCBCR"), ("JPEG_QUALITY", "90")])
+        }
+        Compression::Jpeg => pairs.extend([("COMPRESS", "JPEG"), ("JPEG_QUALITY", "90")]),
+    }
+    for (k, v) in pairs {
         opts.set_name_value(k, v).map_err(err)?;
     }
     let mut ds = driver
@@ -128,7 +146,8 @@ fn write_raster<T: gdal::raster::GdalType + Copy + Default + Send>(
             band.set_no_data_value(Some(nd)).map_err(err)?;
         }
     }
-    let strip = 256;
+    // Whole block rows, all bands of a strip together: JPEG tiles are written once.
+    let strip = 512;
     let mut y0 = 0;
     while y0 < grid.height {
         let rows = strip.min(grid.height - y0);

@@ -130,8 +130,11 @@ pub fn extract(
     if rms > p.max_plane_residual_m {
         return Err(Reject::Relief);
     }
-    let height_grid =
-        HeightGrid { n: n as u32, spacing_m: spacing, heights_m: heights.iter().map(|&h| h as f32).collect() };
+    let height_grid = HeightGrid {
+        n: n as u32,
+        spacing_m: spacing,
+        heights_m: heights.iter().map(|&h| h as f32).collect(),
+    };
 
     let size = p.size_px as usize;
     let mut pixels = Vec::with_capacity(size * size);

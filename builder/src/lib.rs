@@ -223,6 +223,7 @@ pub fn build(opts: &BuildOptions, cancel: &AtomicBool) -> Result<BuildReport> {
         .tempdir_in(&out_dir)
         .map_err(|source| BuildError::Io { path: out_dir.clone(), source })?;
     let groups = group_orthos(ortho_infos, work.path())?;
+    let dems = mosaic_dems(dems, work.path())?;
 
     let base_gsd = opts.base_gsd_m.unwrap_or_else(|| {
         let g = groups.iter().map(|g| g.info.pixel_dx_m.max(g.info.pixel_dy_m)).fold(0.0, f64::max);
@@ -287,7 +288,8 @@ pub fn build(opts: &BuildOptions, cancel: &AtomicBool) -> Result<BuildReport> {
     if summary.template_count == 0 {
         return Err(BuildError::NoTemplates);
     }
-    std::fs::rename(&tmp_db, &opts.out).map_err(|source| BuildError::Io { path: opts.out.clone(), source })?;
+    std::fs::rename(&tmp_db, &opts.out)
+        .map_err(|source| BuildError::Io { path: opts.out.clone(), source })?;
 
     let per_level = (0..levels)
         .map(|k| {
@@ -402,6 +404,46 @@ fn open_dems(opts: &BuildOptions) -> Result<Vec<DemSpec>> {
     Ok(out)
 }
 
+/// DEM tiles with one CRS, pixel size, datum and nodata are read as one VRT,
+/// so heights interpolate across tile seams; others are sampled in turn.
+fn mosaic_dems(dems: Vec<DemSpec>, work: &Path) -> Result<Vec<DemSpec>> {
+    let mut buckets: Vec<Vec<DemSpec>> = Vec::new();
+    for d in dems {
+        let same = |o: &DemSpec| {
+            o.info.srs_wkt == d.info.srs_wkt
+                && o.info.to_crs.gt[1] == d.info.to_crs.gt[1]
+                && o.info.to_crs.gt[5] == d.info.to_crs.gt[5]
+                && o.info.to_crs.gt[2] == 0.0
+                && d.info.to_crs.gt[2] == 0.0
+                && o.info.band_type == d.info.band_type
+                && o.nodata.map(f64::to_bits) == d.nodata.map(f64::to_bits)
+                && o.to_metres == d.to_metres
+                && o.geoid.as_ref().map(|g| &g.name) == d.geoid.as_ref().map(|g| &g.name)
+        };
+        match buckets.iter_mut().find(|b| same(&b[0])) {
+            Some(b) => b.push(d),
+            None => buckets.push(vec![d]),
+        }
+    }
+    let mut out = Vec::new();
+    for (i, b) in buckets.into_iter().enumerate() {
+        if b.len() == 1 {
+            out.extend(b);
+            continue;
+        }
+        let vrt = work.join(format!("dem-mosaic-{i}.vrt"));
+        let dss = b.iter().map(|d| source::open(&d.info.path)).collect::<Result<Vec<_>>>()?;
+        gdal::programs::raster::build_vrt(Some(&vrt), &dss, None).map_err(|e| BuildError::Read {
+            path: b[0].info.path.clone(),
+            reason: format!("cannot mosaic DEMs: {}", source::gdal_reason(&e, &b[0].info.path)),
+        })?;
+        let (_, info) = source::inspect(&vrt)?;
+        info!("mosaic of {} DEMs: {}x{} px", b.len(), info.width, info.height);
+        out.push(DemSpec { info, ..b[0].clone() });
+    }
+    Ok(out)
+}
+
 fn union_text(rasters: &[&RasterInfo]) -> String {
     rasters
         .iter()
@@ -441,7 +483,9 @@ fn group_orthos(infos: Vec<(RasterInfo, Luminance)>, work: &Path) -> Result<Vec<
                 && o.0.to_crs.gt[2] == 0.0
                 && info.to_crs.gt[2] == 0.0
                 && o.0.band_count == info.band_count
-                && o.1 == lum
+                && o.0.band_type == info.band_type
+                && o.1.bands == lum.bands
+                && o.1.alpha_band == lum.alpha_band
         };
         match buckets.iter_mut().find(|b| same(&b[0])) {
             Some(b) => b.push((info, lum)),
@@ -465,7 +509,12 @@ fn group_orthos(infos: Vec<(RasterInfo, Luminance)>, work: &Path) -> Result<Vec<
             info!("mosaic of {} orthos: {}x{} px", files.len(), info.width, info.height);
             (vrt, info)
         };
-        groups.push(OrthoGroup { index: i as u32, path, info, lum: b[0].1.clone(), files });
+        // One grey-level stretch for the whole mosaic: the union of its files' ranges.
+        let (lo, hi) = b.iter().fold((f32::MAX, f32::MIN), |(lo, hi), (_, l)| {
+            (lo.min(l.offset), hi.max(l.offset + 255.0 / l.scale))
+        });
+        let lum = Luminance { offset: lo, scale: 255.0 / (hi - lo), ..b[0].1.clone() };
+        groups.push(OrthoGroup { index: i as u32, path, info, lum, files });
     }
     Ok(groups)
 }
@@ -588,7 +637,9 @@ fn build_group(
         ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} tiles, {elapsed_precise} (eta {eta})")
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
-    bar.set_message(format!("building {}", g.info.path.file_name().unwrap_or_default().to_string_lossy()));
+    let first = g.files[0].file_name().unwrap_or_default().to_string_lossy().into_owned();
+    let more = if g.files.len() > 1 { format!(" +{}", g.files.len() - 1) } else { String::new() };
+    bar.set_message(format!("building {first}{more}"));
 
     let mut templates = Vec::new();
     let rejects = Mutex::new(HashMap::<Reject, usize>::new());
@@ -665,7 +716,13 @@ fn build_group(
             level_count += n;
         }
         if let Some(l) = plan {
-            info!("level {} (GSD {:.2} m): {level_count} templates from {}", l.level, l.gsd_m, g.info.path.display());
+            let names: Vec<String> = g.files.iter().map(|f| f.display().to_string()).collect();
+            info!(
+                "level {} (GSD {:.2} m): {level_count} templates from {}",
+                l.level,
+                l.gsd_m,
+                names.join(", ")
+            );
         }
         prev = next;
     }
@@ -724,8 +781,8 @@ fn tile_templates(
     (out, cands.len())
 }
 
-/// Keeps the most distinctive of templates of one level closer than half a cell
-/// (overlapping mosaics in different CRSs).
+/// Where mosaics in different CRSs overlap, keeps the most distinctive of
+/// templates of one level from different mosaics closer than half a cell.
 fn dedupe(mut all: Vec<Template>, opts: &BuildOptions) -> Vec<Template> {
     all.sort_by(|a, b| a.quality.second_peak_ncc.total_cmp(&b.quality.second_peak_ncc));
     let mut kept: Vec<Template> = Vec::new();
@@ -738,8 +795,13 @@ fn dedupe(mut all: Vec<Template>, opts: &BuildOptions) -> Vec<Template> {
         let ecef = t.center_ecef();
         let clash = (-1..=1).any(|dy| {
             (-1..=1).any(|dx| {
-                grid.get(&(t.level, cy + dy, cx + dx))
-                    .is_some_and(|v| v.iter().any(|&i| kept[i].center_ecef().distance_m(&ecef) < min_d))
+                grid.get(&(t.level, cy + dy, cx + dx)).is_some_and(|v| {
+                    // Only another mosaic's landmark is a duplicate: one mosaic's own
+                    // cells already keep its landmarks apart.
+                    v.iter().any(|&i| {
+                        kept[i].source != t.source && kept[i].center_ecef().distance_m(&ecef) < min_d
+                    })
+                })
             })
         });
         if !clash {

@@ -129,7 +129,8 @@ impl LevelFile {
     pub fn create(dir: &Path, name: &str, width: usize, height: usize) -> Result<Self> {
         let lp = dir.join(format!("{name}.lum"));
         if width * height * 5 <= LEVEL_MEMORY_BUDGET {
-            let store = LevelStore::Memory(RwLock::new((vec![0f32; width * height], vec![0u8; width * height])));
+            let store =
+                LevelStore::Memory(RwLock::new((vec![0f32; width * height], vec![0u8; width * height])));
             return Ok(Self { width, height, path: lp, store });
         }
         let io = |p: &Path| {
@@ -137,8 +138,10 @@ impl LevelFile {
             move |source| BuildError::Io { path: p.clone(), source }
         };
         let vp = dir.join(format!("{name}.valid"));
-        let lum = File::options().read(true).write(true).create(true).truncate(true).open(&lp).map_err(io(&lp))?;
-        let valid = File::options().read(true).write(true).create(true).truncate(true).open(&vp).map_err(io(&vp))?;
+        let lum =
+            File::options().read(true).write(true).create(true).truncate(true).open(&lp).map_err(io(&lp))?;
+        let valid =
+            File::options().read(true).write(true).create(true).truncate(true).open(&vp).map_err(io(&vp))?;
         lum.set_len((width * height * 4) as u64).map_err(io(&lp))?;
         valid.set_len((width * height) as u64).map_err(io(&vp))?;
         Ok(Self { width, height, path: lp, store: LevelStore::Files { lum, valid } })
@@ -201,7 +204,8 @@ impl LevelFile {
                         for (c, ch) in bytes.chunks_exact(4).enumerate() {
                             lum[dst + c] = f32::from_le_bytes([ch[0], ch[1], ch[2], ch[3]]);
                         }
-                        vf.read_exact_at(&mut valid[dst..dst + rw], off as u64).map_err(|e| self.io_err(e))?;
+                        vf.read_exact_at(&mut valid[dst..dst + rw], off as u64)
+                            .map_err(|e| self.io_err(e))?;
                     }
                     (LevelStore::Memory(_), None) => unreachable!("memory levels are always locked"),
                 }

@@ -161,7 +161,8 @@ pub fn measures(img: &LumWindow, p: &SelectParams) -> Measures {
         gx.iter_mut().for_each(|g| *g = 0.0);
         gy.iter_mut().for_each(|g| *g = 0.0);
         if y > 0 && y + 1 < h {
-            let (up, down) = (&img.lum[(y - 1) * w..(y - 1) * w + used_w], &img.lum[(y + 1) * w..(y + 1) * w + used_w]);
+            let (up, down) =
+                (&img.lum[(y - 1) * w..(y - 1) * w + used_w], &img.lum[(y + 1) * w..(y + 1) * w + used_w]);
             for x in 0..used_w {
                 gy[x] = 0.5 * (down[x] - up[x]);
             }
@@ -426,7 +427,10 @@ pub fn select(img: &LumWindow, p: &SelectParams, core: Core) -> Vec<Candidate> {
     for by in 0..m.grid_h {
         for bx in 0..m.grid_w {
             let i = by * m.grid_w + bx;
-            if !(m.usable[i] && m.shi_tomasi[i] >= p.min_shi_tomasi && m.contrast_std[i] >= p.min_contrast_std) {
+            if !(m.usable[i]
+                && m.shi_tomasi[i] >= p.min_shi_tomasi
+                && m.contrast_std[i] >= p.min_contrast_std)
+            {
                 continue;
             }
             let Some((x, y)) = m.centre(bx, by) else { continue };
@@ -612,7 +616,11 @@ mod tests {
                 let (a, b, c) = (a / n, b / n, c / n);
                 let lmin = 0.5 * (a + c) - (0.25 * (a - c) * (a - c) + b * b).sqrt();
                 let std = (s2 / n - (s1 / n).powi(2)).sqrt();
-                assert!((m.shi_tomasi[i] as f64 - lmin).abs() < 1e-3 * lmin.max(1.0), "{} vs {lmin}", m.shi_tomasi[i]);
+                assert!(
+                    (m.shi_tomasi[i] as f64 - lmin).abs() < 1e-3 * lmin.max(1.0),
+                    "{} vs {lmin}",
+                    m.shi_tomasi[i]
+                );
                 assert!((m.contrast_std[i] as f64 - std).abs() < 1e-2, "{} vs {std}", m.contrast_std[i]);
                 checked += 1;
             }
@@ -626,7 +634,8 @@ mod tests {
         let valid = vec![1u8; w * h];
         // A vertical edge: shifting along it changes nothing (a ridge), so not unique.
         let noise = noise(w, h, 4);
-        let edge: Vec<f32> = (0..w * h).map(|i| if i % w < 30 { 60.0 } else { 160.0 } + 0.01 * noise[i]).collect();
+        let edge: Vec<f32> =
+            (0..w * h).map(|i| if i % w < 30 { 60.0 } else { 160.0 } + 0.01 * noise[i]).collect();
         let img = LumWindow { width: w, height: h, lum: &edge, valid: &valid };
         assert!(second_peak(&img, 30, 30, &params()) > 0.95);
         // One smooth bump: the NCC falls off slowly but never rises again.

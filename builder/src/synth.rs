@@ -125,7 +125,8 @@ fn write_raster<T: gdal::raster::GdalType + Copy + Default + Send>(
     let err = |e: gdal::errors::GdalError| BuildError::Read { path: path.into(), reason: e.to_string() };
     let driver = DriverManager::get_driver_by_name("GTiff").map_err(err)?;
     let mut opts = RasterCreationOptions::new();
-    let mut pairs = vec![("TILED", "YES"), ("BLOCKXSIZE", "512"), ("BLOCKYSIZE", "512"), ("BIGTIFF", "IF_SAFER")];
+    let mut pairs =
+        vec![("TILED", "YES"), ("BLOCKXSIZE", "512"), ("BLOCKYSIZE", "512"), ("BIGTIFF", "IF_SAFER")];
     match compression {
         Compression::Deflate => pairs.extend([("COMPRESS", "DEFLATE"), ("INTERLEAVE", "PIXEL")]),
         Compression::Jpeg if bands == 3 => {

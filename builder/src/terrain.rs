@@ -9,7 +9,7 @@ use gdal::Dataset;
 use trn_geodesy::GeoidGrid;
 
 use crate::error::{BuildError, Result};
-use crate::source::{self, PixelToCrs, RasterInfo};
+use crate::source::{self, RasterInfo};
 
 /// Loads a geoid undulation grid (e.g. `/usr/share/proj/egm96_15.gtx`) with GDAL.
 pub fn load_geoid(path: &Path) -> Result<GeoidGrid> {
@@ -81,10 +81,22 @@ impl DemSampler {
         Ok(Self { dems })
     }
 
-    /// Ellipsoidal heights (m) at (lon, lat) points, all from the first DEM that
-    /// covers every point with valid data; `None` when none does.
+    /// Ellipsoidal heights (m) at (lon, lat) points, each from the first DEM
+    /// (in the order given) with valid data there, so tiles of a DEM mosaic
+    /// join; `None` when some point has no DEM.
     pub fn heights_ellipsoidal(&self, lonlat: &[(f64, f64)]) -> Option<Vec<f64>> {
-        self.dems.iter().find_map(|(spec, ds, ct)| sample(spec, ds, ct, lonlat))
+        let mut out: Vec<Option<f64>> = vec![None; lonlat.len()];
+        for (spec, ds, ct) in &self.dems {
+            let missing: Vec<usize> = (0..lonlat.len()).filter(|&i| out[i].is_none()).collect();
+            if missing.is_empty() {
+                break;
+            }
+            let pts: Vec<(f64, f64)> = missing.iter().map(|&i| lonlat[i]).collect();
+            for (k, h) in sample(spec, ds, ct, &pts).into_iter().enumerate() {
+                out[missing[k]] = h;
+            }
+        }
+        out.into_iter().collect()
     }
 
     pub fn paths(&self) -> Vec<PathBuf> {
@@ -92,59 +104,63 @@ impl DemSampler {
     }
 }
 
-fn sample(spec: &DemSpec, ds: &Dataset, ct: &CoordTransform, lonlat: &[(f64, f64)]) -> Option<Vec<f64>> {
+/// Heights at the points this DEM covers with valid data (bilinear, clamped
+/// half a pixel past the edge centres so adjacent tiles meet).
+fn sample(spec: &DemSpec, ds: &Dataset, ct: &CoordTransform, lonlat: &[(f64, f64)]) -> Vec<Option<f64>> {
+    let none = vec![None; lonlat.len()];
     let mut xs: Vec<f64> = lonlat.iter().map(|p| p.0).collect();
     let mut ys: Vec<f64> = lonlat.iter().map(|p| p.1).collect();
     let mut zs = vec![0.0; xs.len()];
-    ct.transform_coords(&mut xs, &mut ys, &mut zs).ok()?;
-    let to_crs: PixelToCrs = spec.info.to_crs;
-    // Sample positions in pixel-centre convention.
-    let pos: Vec<(f64, f64)> = xs
+    if ct.transform_coords(&mut xs, &mut ys, &mut zs).is_err() {
+        return none;
+    }
+    let (w, h) = (spec.info.width as f64, spec.info.height as f64);
+    // Sample positions in pixel-centre convention; None outside the raster.
+    let pos: Vec<Option<(f64, f64)>> = xs
         .iter()
         .zip(&ys)
         .map(|(&x, &y)| {
-            let (c, r) = to_crs.invert(x, y);
-            (c - 0.5, r - 0.5)
+            let (c, r) = spec.info.to_crs.invert(x, y);
+            let (c, r) = (c - 0.5, r - 0.5);
+            (c >= -0.5 && r >= -0.5 && c <= w - 0.5 && r <= h - 0.5).then_some((c, r))
         })
         .collect();
-    let (w, h) = (spec.info.width as isize, spec.info.height as isize);
-    let c0 = pos.iter().map(|p| p.0.floor() as isize).min()?;
-    let c1 = pos.iter().map(|p| p.0.floor() as isize + 1).max()?;
-    let r0 = pos.iter().map(|p| p.1.floor() as isize).min()?;
-    let r1 = pos.iter().map(|p| p.1.floor() as isize + 1).max()?;
-    // Edge pixels are clamped (half a pixel of extrapolation at the border).
-    let (c0c, r0c, c1c, r1c) = (c0.max(0), r0.max(0), c1.min(w - 1), r1.min(h - 1));
-    if pos.iter().any(|p| p.0 < -0.5 || p.1 < -0.5 || p.0 > w as f64 - 0.5 || p.1 > h as f64 - 0.5)
-        || c1c < c0c
-        || r1c < r0c
-    {
-        return None;
+    let inside: Vec<(f64, f64)> = pos.iter().flatten().copied().collect();
+    if inside.is_empty() {
+        return none;
     }
-    let (ww, wh) = ((c1c - c0c + 1) as usize, (r1c - r0c + 1) as usize);
-    let band = ds.rasterband(1).ok()?;
-    let buf = band.read_as::<f64>((c0c, r0c), (ww, wh), (ww, wh), None).ok()?;
+    let (wi, hi) = (spec.info.width as isize, spec.info.height as isize);
+    let c0 = inside.iter().map(|p| p.0.floor() as isize).min().unwrap_or(0).clamp(0, wi - 1);
+    let c1 = inside.iter().map(|p| p.0.floor() as isize + 1).max().unwrap_or(0).clamp(0, wi - 1);
+    let r0 = inside.iter().map(|p| p.1.floor() as isize).min().unwrap_or(0).clamp(0, hi - 1);
+    let r1 = inside.iter().map(|p| p.1.floor() as isize + 1).max().unwrap_or(0).clamp(0, hi - 1);
+    let (ww, wh) = ((c1 - c0 + 1) as usize, (r1 - r0 + 1) as usize);
+    let Ok(band) = ds.rasterband(1) else { return none };
+    let Ok(buf) = band.read_as::<f64>((c0, r0), (ww, wh), (ww, wh), None) else { return none };
     let data = buf.data();
     let at = |c: isize, r: isize| -> Option<f64> {
-        let (c, r) = (c.clamp(c0c, c1c), r.clamp(r0c, r1c));
-        let v = data[(r - r0c) as usize * ww + (c - c0c) as usize];
+        let (c, r) = (c.clamp(c0, c1), r.clamp(r0, r1));
+        let v = data[(r - r0) as usize * ww + (c - c0) as usize];
         match spec.nodata {
             Some(nd) if v == nd || (nd.is_nan() && v.is_nan()) => None,
             _ if !v.is_finite() => None,
             _ => Some(v),
         }
     };
-    let mut out = Vec::with_capacity(pos.len());
-    for (i, &(c, r)) in pos.iter().enumerate() {
-        let (fc, fr) = (c.floor(), r.floor());
-        let (tc, tr) = (c - fc, r - fr);
-        let (ic, ir) = (fc as isize, fr as isize);
-        let v = (at(ic, ir)? * (1.0 - tc) + at(ic + 1, ir)? * tc) * (1.0 - tr)
-            + (at(ic, ir + 1)? * (1.0 - tc) + at(ic + 1, ir + 1)? * tc) * tr;
-        let mut hgt = v * spec.to_metres;
-        if let Some(g) = &spec.geoid {
-            hgt += g.undulation_at(lonlat[i].1, lonlat[i].0)?;
-        }
-        out.push(hgt);
-    }
-    Some(out)
+    pos.iter()
+        .zip(lonlat)
+        .map(|(p, &(lon, lat))| {
+            let (c, r) = (*p)?;
+            let (fc, fr) = (c.floor(), r.floor());
+            let (tc, tr) = (c - fc, r - fr);
+            let (ic, ir) = (fc as isize, fr as isize);
+            let v = (at(ic, ir)? * (1.0 - tc) + at(ic + 1, ir)? * tc) * (1.0 - tr)
+                + (at(ic, ir + 1)? * (1.0 - tc) + at(ic + 1, ir + 1)? * tc) * tr;
+            let mut hgt = v * spec.to_metres;
+            if let Some(g) = &spec.geoid {
+                hgt += g.undulation_at(lat, lon)?;
+            }
+            Some(hgt)
+        })
+        .collect()
 }

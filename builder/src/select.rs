@@ -41,63 +41,40 @@ pub struct Candidate {
 }
 
 /// Box sums over a `win_w x win_h` window centred at each pixel (top-left at
-/// `x - win_w/2`), on the grid of every `stride`-th pixel (output index
-/// `gy * gw + gx` for pixel `(gx * stride, gy * stride)`, `gw = ceil(w / stride)`),
-/// computed with running sums; entries whose window leaves the image are `NAN`.
-pub fn box_sum(
-    src: &[f32],
-    width: usize,
-    height: usize,
-    win_w: usize,
-    win_h: usize,
-    stride: usize,
-) -> Vec<f32> {
-    let (gw, gh) = (width.div_ceil(stride), height.div_ceil(stride));
-    let mut out = vec![f32::NAN; gw * gh];
+/// `x - win_w/2`), with running sums; entries whose window leaves the image are `NAN`.
+pub fn box_sum(src: &[f32], width: usize, height: usize, win_w: usize, win_h: usize) -> Vec<f32> {
+    let mut out = vec![f32::NAN; width * height];
     if win_w > width || win_h > height {
         return out;
     }
     let (hw, hh) = (win_w / 2, win_h / 2);
-    // Horizontal running sums, evaluated only at grid columns: the window
-    // advances `stride` pixels between outputs.
-    let mut horiz = vec![f64::NAN; gw * height];
-    let first = hw.next_multiple_of(stride);
+    // f64 accumulators: no drift along long rows and columns.
+    let mut horiz = vec![f64::NAN; width * height];
     for y in 0..height {
         let row = &src[y * width..(y + 1) * width];
-        let out_row = &mut horiz[y * gw..(y + 1) * gw];
-        let mut x = first;
-        if x + win_w - hw > width {
-            continue;
-        }
-        // f64 accumulator: no drift across long rows.
-        let mut acc: f64 = row[x - hw..x - hw + win_w].iter().map(|&v| v as f64).sum();
-        out_row[x / stride] = acc;
-        while x + stride + win_w - hw <= width {
-            let (old, new) = (x - hw, x - hw + win_w);
-            for k in 0..stride {
-                acc += row[new + k] as f64 - row[old + k] as f64;
-            }
-            x += stride;
-            out_row[x / stride] = acc;
+        let out_row = &mut horiz[y * width..(y + 1) * width];
+        let mut acc: f64 = row[..win_w].iter().map(|&v| v as f64).sum();
+        out_row[hw] = acc;
+        for x0 in 1..=(width - win_w) {
+            acc += row[x0 + win_w - 1] as f64 - row[x0 - 1] as f64;
+            out_row[x0 + hw] = acc;
         }
     }
-    let mut acc = vec![0f64; gw];
+    let mut acc = vec![0f64; width];
     for y in 0..win_h {
-        for (a, h) in acc.iter_mut().zip(&horiz[y * gw..(y + 1) * gw]) {
+        for (a, h) in acc.iter_mut().zip(&horiz[y * width..(y + 1) * width]) {
             *a += h;
         }
     }
     let emit = |y: usize, acc: &[f64], out: &mut [f32]| {
-        if y % stride == 0 {
-            for (o, a) in out[(y / stride) * gw..(y / stride + 1) * gw].iter_mut().zip(acc) {
-                *o = *a as f32;
-            }
+        for (o, a) in out[y * width..(y + 1) * width].iter_mut().zip(acc) {
+            *o = *a as f32;
         }
     };
     emit(hh, &acc, &mut out);
     for y0 in 1..=(height - win_h) {
-        let (add, sub) = ((y0 + win_h - 1) * gw, (y0 - 1) * gw);
-        for x in 0..gw {
+        let (add, sub) = ((y0 + win_h - 1) * width, (y0 - 1) * width);
+        for x in 0..width {
             acc[x] += horiz[add + x] - horiz[sub + x];
         }
         emit(y0 + hh, &acc, &mut out);
@@ -202,14 +179,14 @@ pub fn measures(img: &LumWindow, p: &SelectParams) -> Measures {
     let kw = (p.win_w as f64 / s as f64).round().max(1.0) as usize;
     let kh = (p.win_h as f64 / s as f64).round().max(1.0) as usize;
     let area = (kw * kh * s * s) as f32;
-    let sxx = box_sum(&bxx, bw, bh, kw, kh, 1);
-    let syy = box_sum(&byy, bw, bh, kw, kh, 1);
-    let sxy = box_sum(&bxy, bw, bh, kw, kh, 1);
-    let s1 = box_sum(&b1, bw, bh, kw, kh, 1);
-    let s2 = box_sum(&b2, bw, bh, kw, kh, 1);
+    let sxx = box_sum(&bxx, bw, bh, kw, kh);
+    let syy = box_sum(&byy, bw, bh, kw, kh);
+    let sxy = box_sum(&bxy, bw, bh, kw, kh);
+    let s1 = box_sum(&b1, bw, bh, kw, kh);
+    let s2 = box_sum(&b2, bw, bh, kw, kh);
     // One block more on each side (same centre): bilinear resampling and the
     // exact template window reach a little past the measured window.
-    let sbad = box_sum(&bbad, bw, bh, kw + 2, kh + 2, 1);
+    let sbad = box_sum(&bbad, bw, bh, kw + 2, kh + 2);
     let bad_area = ((kw + 2) * (kh + 2) * s * s) as f32;
     let mut shi_tomasi = vec![0f32; nb];
     let mut contrast_std = vec![0f32; nb];
@@ -341,8 +318,9 @@ impl Patch {
 
 /// Normalised cross-correlation of the template centred at (cx, cy) with the
 /// window shifted by (dx, dy), sampling every `step`-th pixel.
+#[cfg(test)]
 #[allow(clippy::too_many_arguments)]
-pub fn ncc_shift(
+fn ncc_shift(
     img: &LumWindow,
     cx: usize,
     cy: usize,
@@ -492,16 +470,13 @@ mod tests {
     fn box_sum_matches_brute_force() {
         let (w, h) = (37, 29);
         let src = noise(w, h, 3);
-        for &(ww, wh, st) in &[(5, 5, 1), (6, 4, 1), (1, 1, 1), (37, 29, 1), (5, 5, 2), (6, 3, 2), (4, 4, 3)]
-        {
-            let got = box_sum(&src, w, h, ww, wh, st);
-            let gw = w.div_ceil(st);
-            assert_eq!(got.len(), gw * h.div_ceil(st));
-            for y in (0..h).step_by(st) {
-                for x in (0..w).step_by(st) {
+        for &(ww, wh) in &[(5, 5), (6, 4), (1, 1), (37, 29), (4, 7)] {
+            let got = box_sum(&src, w, h, ww, wh);
+            for y in 0..h {
+                for x in 0..w {
                     let (x0, y0) = (x as isize - (ww / 2) as isize, y as isize - (wh / 2) as isize);
                     let inside = x0 >= 0 && y0 >= 0 && x0 as usize + ww <= w && y0 as usize + wh <= h;
-                    let g = got[(y / st) * gw + x / st];
+                    let g = got[y * w + x];
                     if !inside {
                         assert!(g.is_nan());
                         continue;

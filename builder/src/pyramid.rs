@@ -63,7 +63,7 @@ impl OrthoReader {
             let (rw, rh) = ((rx1 - rx0) as usize, (ry1 - ry0) as usize);
             let rerr = |e: gdal::errors::GdalError| BuildError::Read {
                 path: self.path.clone(),
-                reason: e.to_string(),
+                reason: crate::source::gdal_reason(&e, &self.path),
             };
             let mut acc = vec![0f32; rw * rh];
             let mut ok = vec![1u8; rw * rh];

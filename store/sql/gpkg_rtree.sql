@@ -1,19 +1,12 @@
 -- GeoPackage R*Tree spatial index extension (OGC 12-128r17 Annex F.3) on templates.geom,
--- created and filled once by DbWriter::finish after the bulk load: the triggers call
--- the ST_* functions, which GDAL/QGIS provide but our plain SQLite connection does not.
--- The envelope matches the geometry blob: a footprint crossing the antimeridian is
--- drawn with max x = footprint_max_lon_deg + 360.
+-- created once by DbWriter::finish after the bulk load and templates_rtree.sql: the
+-- triggers call the ST_* functions, which GDAL/QGIS provide but our plain SQLite
+-- connection does not. finish fills the R*Tree like templates_rtree (src/rtree.rs),
+-- with the envelope of the geometry blob: (footprint_min_lon_deg,
+-- footprint_max_lon_deg, footprint_min_lat_deg, footprint_max_lat_deg), where a
+-- footprint crossing the antimeridian is drawn with max x = footprint_max_lon_deg + 360.
 
 CREATE VIRTUAL TABLE rtree_templates_geom USING rtree(id, minx, maxx, miny, maxy);
-
-INSERT INTO rtree_templates_geom
-SELECT fid,
-       footprint_min_lon_deg,
-       CASE WHEN footprint_min_lon_deg <= footprint_max_lon_deg
-            THEN footprint_max_lon_deg ELSE footprint_max_lon_deg + 360.0 END,
-       footprint_min_lat_deg,
-       footprint_max_lat_deg
-FROM templates;
 
 INSERT INTO gpkg_extensions VALUES (
     'templates', 'geom', 'gpkg_rtree_index',

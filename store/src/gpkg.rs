@@ -23,35 +23,48 @@ pub fn footprint_x_range(footprint: &GeoBox) -> (f64, f64) {
     }
 }
 
+/// Length of a footprint geometry blob.
+pub(crate) const FOOTPRINT_BLOB_LEN: usize = HEADER_LEN + ENVELOPE_LEN + WKB_POLYGON_LEN;
+
 /// GeoPackage geometry blob (OGC 12-128r17 clause 2.1.3): the 'GP' header with SRS id
 /// and envelope, then the footprint box as a little-endian WKB polygon (x = longitude,
 /// y = latitude), exterior ring counter-clockwise.
 pub fn footprint_polygon_blob(footprint: &GeoBox) -> Vec<u8> {
+    footprint_polygon(footprint).to_vec()
+}
+
+/// [`footprint_polygon_blob`] without the allocation.
+pub(crate) fn footprint_polygon(footprint: &GeoBox) -> [u8; FOOTPRINT_BLOB_LEN] {
     let (min_x, max_x) = footprint_x_range(footprint);
     let (min_y, max_y) = (footprint.min_lat_deg, footprint.max_lat_deg);
-    let mut b = Vec::with_capacity(HEADER_LEN + ENVELOPE_LEN + WKB_POLYGON_LEN);
-    b.extend_from_slice(b"GP");
-    b.push(0); // version 1
-    b.push(FLAGS);
-    b.extend_from_slice(&FOOTPRINT_SRS_ID.to_le_bytes());
+    let mut b = [0u8; FOOTPRINT_BLOB_LEN];
+    let mut at = 0;
+    let mut put = |bytes: &[u8]| {
+        b[at..at + bytes.len()].copy_from_slice(bytes);
+        at += bytes.len();
+    };
+    put(b"GP");
+    put(&[0, FLAGS]); // version 1, flags
+    put(&FOOTPRINT_SRS_ID.to_le_bytes());
     for v in [min_x, max_x, min_y, max_y] {
-        b.extend_from_slice(&v.to_le_bytes());
+        put(&v.to_le_bytes());
     }
-    b.push(1); // WKB little-endian
-    b.extend_from_slice(&WKB_POLYGON.to_le_bytes());
-    b.extend_from_slice(&1u32.to_le_bytes()); // rings
-    b.extend_from_slice(&5u32.to_le_bytes()); // points, ring closed
+    put(&[1]); // WKB little-endian
+    put(&WKB_POLYGON.to_le_bytes());
+    put(&1u32.to_le_bytes()); // rings
+    put(&5u32.to_le_bytes()); // points, ring closed
     for (x, y) in [(min_x, min_y), (max_x, min_y), (max_x, max_y), (min_x, max_y), (min_x, min_y)] {
-        b.extend_from_slice(&x.to_le_bytes());
-        b.extend_from_slice(&y.to_le_bytes());
+        put(&x.to_le_bytes());
+        put(&y.to_le_bytes());
     }
+    debug_assert_eq!(at, FOOTPRINT_BLOB_LEN);
     b
 }
 
 /// Reads back the envelope `(min_x, min_y, max_x, max_y)` of a blob written by
 /// [`footprint_polygon_blob`]; `None` for anything else.
 pub fn polygon_blob_envelope(blob: &[u8]) -> Option<(f64, f64, f64, f64)> {
-    if blob.len() != HEADER_LEN + ENVELOPE_LEN + WKB_POLYGON_LEN || &blob[..2] != b"GP" || blob[3] != FLAGS {
+    if blob.len() != FOOTPRINT_BLOB_LEN || &blob[..2] != b"GP" || blob[3] != FLAGS {
         return None;
     }
     let f =

@@ -15,6 +15,7 @@
 mod error;
 pub mod gpkg;
 mod reader;
+mod rtree;
 mod schema;
 mod writer;
 

@@ -2,26 +2,75 @@
 
 use std::path::Path;
 
-use rusqlite::{params, Row, Statement};
+use rusqlite::{Row, Statement, ToSql};
 use trn_geodesy::Geodetic;
 use trn_landmark::{GeoBox, HeightGrid, Template, TemplateQuality, TerrainPatch};
 
 use crate::error::{SqlContext, StoreError, StoreErrorKind};
-use crate::gpkg::footprint_polygon_blob;
+use crate::gpkg::footprint_polygon;
 
 pub(crate) const GPKG_CORE_SQL: &str = include_str!("../sql/gpkg_core.sql");
 pub(crate) const TEMPLATES_SQL: &str = include_str!("../sql/templates.sql");
+pub(crate) const TEMPLATES_RTREE_SQL: &str = include_str!("../sql/templates_rtree.sql");
 pub(crate) const GPKG_RTREE_SQL: &str = include_str!("../sql/gpkg_rtree.sql");
-pub(crate) const FINISH_SQL: &str = include_str!("../sql/finish.sql");
 
-pub(crate) const INSERT_TEMPLATE: &str = "INSERT INTO templates (
-    geom, level, gsd_m, width_px, height_px, lat_deg, lon_deg, h_m, ecef_x_m, ecef_y_m, ecef_z_m,
-    footprint_min_lon_deg, footprint_min_lat_deg, footprint_max_lon_deg, footprint_max_lat_deg,
-    plane_normal_e, plane_normal_n, plane_normal_u, plane_residual_rms_m,
-    height_grid_n, height_grid_spacing_m, height_grid_heights_m,
-    shi_tomasi, contrast_std, second_peak_ncc, source, pixels)
-VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16, ?17, ?18, ?19, ?20,
-    ?21, ?22, ?23, ?24, ?25, ?26, ?27)";
+/// One row of trn_levels, the summary of a pyramid level (see writer::write_summaries).
+pub(crate) const INSERT_LEVEL: &str = "INSERT INTO trn_levels (level, gsd_m, template_count,
+    min_lon_deg, min_lat_deg, max_lon_deg, max_lat_deg) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7)";
+
+/// The templates layer extent for GIS clients, in geometry coordinates.
+pub(crate) const UPDATE_LAYER_EXTENT: &str = "UPDATE gpkg_contents
+    SET (min_x, min_y, max_x, max_y) = (?1, ?2, ?3, ?4),
+        last_change = strftime('%Y-%m-%dT%H:%M:%fZ', 'now')
+    WHERE table_name = 'templates'";
+
+/// The longitude range of a footprint in templates_rtree and trn_levels: a footprint
+/// crossing the antimeridian spans all longitudes (see templates_rtree.sql).
+pub(crate) fn level_index_lon_range(fp: &GeoBox) -> (f64, f64) {
+    if fp.crosses_antimeridian() {
+        ((-180.0f64).min(fp.max_lon_deg), 180.0f64.max(fp.min_lon_deg))
+    } else {
+        (fp.min_lon_deg, fp.max_lon_deg)
+    }
+}
+
+/// Columns written by [`bind_template`], in its order.
+const INSERT_COLUMNS: [&str; 28] = [
+    "fid",
+    "geom",
+    "level",
+    "gsd_m",
+    "width_px",
+    "height_px",
+    "lat_deg",
+    "lon_deg",
+    "h_m",
+    "ecef_x_m",
+    "ecef_y_m",
+    "ecef_z_m",
+    "footprint_min_lon_deg",
+    "footprint_min_lat_deg",
+    "footprint_max_lon_deg",
+    "footprint_max_lat_deg",
+    "plane_normal_e",
+    "plane_normal_n",
+    "plane_normal_u",
+    "plane_residual_rms_m",
+    "height_grid_n",
+    "height_grid_spacing_m",
+    "height_grid_heights_m",
+    "shi_tomasi",
+    "contrast_std",
+    "second_peak_ncc",
+    "source",
+    "pixels",
+];
+
+/// An `INSERT INTO templates` of `rows` rows, each bound by [`bind_template`].
+pub(crate) fn insert_templates_sql(rows: usize) -> String {
+    let row = format!("({})", ["?"; INSERT_COLUMNS.len()].join(", "));
+    format!("INSERT INTO templates ({}) VALUES {}", INSERT_COLUMNS.join(", "), vec![row; rows].join(", "))
+}
 
 /// Columns read by [`template_from_row`], in its order; a macro so that `concat!`
 /// can build constant SQL for `prepare_cached`.
@@ -86,45 +135,69 @@ pub(crate) fn validate(t: &Template) -> Result<(), String> {
     if fp.min_lat_deg > fp.max_lat_deg {
         return Err(format!("footprint min_lat_deg {} > max_lat_deg {}", fp.min_lat_deg, fp.max_lat_deg));
     }
+    // Drawn unwrapped, past +180 (gpkg::footprint_x_range); the GeoPackage R*Tree
+    // refuses an inverted box.
+    if fp.crosses_antimeridian() && fp.max_lon_deg + 360.0 < fp.min_lon_deg {
+        return Err(format!(
+            "footprint crosses the antimeridian by more than a turn: min_lon_deg {} > max_lon_deg {} + 360",
+            fp.min_lon_deg, fp.max_lon_deg
+        ));
+    }
     Ok(())
 }
 
-/// Inserts one (validated) template with a fresh id and returns the id.
-pub(crate) fn insert_template(stmt: &mut Statement<'_>, t: &Template) -> rusqlite::Result<i64> {
+/// Binds one (validated) template with the given id as row `row` (from 0) of a
+/// statement from [`insert_templates_sql`]. `heights` is a scratch buffer (SQLite
+/// copies what is bound).
+pub(crate) fn bind_template(
+    stmt: &mut Statement<'_>,
+    row: usize,
+    id: i64,
+    t: &Template,
+    heights: &mut Vec<u8>,
+) -> rusqlite::Result<()> {
     let ecef = t.center.to_ecef();
     let fp = &t.footprint;
     let n = &t.terrain.plane_normal_enu;
     let g = &t.terrain.height_grid;
-    let heights: Vec<u8> = g.heights_m.iter().flat_map(|h| h.to_le_bytes()).collect();
-    stmt.insert(params![
-        footprint_polygon_blob(fp),
-        t.level,
-        t.gsd_m,
-        t.width_px,
-        t.height_px,
-        t.center.lat_deg,
-        t.center.lon_deg,
-        t.center.h_m,
-        ecef.x(),
-        ecef.y(),
-        ecef.z(),
-        fp.min_lon_deg,
-        fp.min_lat_deg,
-        fp.max_lon_deg,
-        fp.max_lat_deg,
-        n[0],
-        n[1],
-        n[2],
-        t.terrain.plane_residual_rms_m,
-        g.n,
-        g.spacing_m,
-        heights,
-        t.quality.shi_tomasi,
-        t.quality.contrast_std,
-        t.quality.second_peak_ncc,
-        t.source,
-        t.pixels,
-    ])
+    heights.clear();
+    heights.extend(g.heights_m.iter().flat_map(|h| h.to_le_bytes()));
+    let geom = footprint_polygon(fp);
+    let values: [&dyn ToSql; INSERT_COLUMNS.len()] = [
+        &id,
+        &geom,
+        &t.level,
+        &t.gsd_m,
+        &t.width_px,
+        &t.height_px,
+        &t.center.lat_deg,
+        &t.center.lon_deg,
+        &t.center.h_m,
+        &ecef.x(),
+        &ecef.y(),
+        &ecef.z(),
+        &fp.min_lon_deg,
+        &fp.min_lat_deg,
+        &fp.max_lon_deg,
+        &fp.max_lat_deg,
+        &n[0],
+        &n[1],
+        &n[2],
+        &t.terrain.plane_residual_rms_m,
+        &g.n,
+        &g.spacing_m,
+        &*heights,
+        &t.quality.shi_tomasi,
+        &t.quality.contrast_std,
+        &t.quality.second_peak_ncc,
+        &t.source,
+        &t.pixels,
+    ];
+    let first = row * INSERT_COLUMNS.len() + 1;
+    for (i, v) in values.into_iter().enumerate() {
+        stmt.raw_bind_parameter(first + i, v)?;
+    }
+    Ok(())
 }
 
 /// Decodes a row selected with [`TEMPLATE_COLUMNS`].

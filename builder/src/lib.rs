@@ -338,7 +338,7 @@ fn select_all(
         let before = all.len();
         all = dedupe(all, opts);
         info!("dropped {} duplicate templates where mosaics overlap", before - all.len());
-        all.sort_by(|a, b| (a.level, a.center.lat_deg.to_bits()).cmp(&(b.level, b.center.lat_deg.to_bits())));
+        all.sort_by(|a, b| a.level.cmp(&b.level).then(a.center.lat_deg.total_cmp(&b.center.lat_deg)));
         while !all.is_empty() {
             let rest = all.split_off(all.len().min(2000));
             tx.send(std::mem::replace(&mut all, rest)).map_err(|_| BuildError::WriterStopped)?;
@@ -560,6 +560,7 @@ struct LevelPlan {
     select: SelectParams,
 }
 
+#[allow(clippy::too_many_arguments)]
 fn build_group(
     opts: &BuildOptions,
     g: &OrthoGroup,
@@ -648,8 +649,7 @@ fn build_group(
     // One set of GDAL/PROJ handles per thread: opening them costs milliseconds.
     let workers: Vec<Mutex<Option<Worker>>> =
         (0..rayon::current_num_threads().max(1)).map(|_| Mutex::new(None)).collect();
-    for p in 0..=top {
-        let (w, h) = sizes[p];
+    for (p, &(w, h)) in sizes.iter().enumerate() {
         let plan = plan_for(p);
         let next = if p < top {
             Some(LevelFile::create(work, &format!("g{}-p{}", g.index, p + 1), w / 2, h / 2)?)

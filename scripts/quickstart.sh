@@ -23,5 +23,5 @@ r = json.load(open(sys.argv[1]))
 levels = ", ".join(f"level {l} ({g:.1f} m): {n}" for l, g, n in r["levels"])
 print(f"{r['out']}: {r['templates']} templates [{levels}] in {r['seconds']:.2f} s")
 PY
-  ogrinfo -ro -so -q "$out/$db.gpkg" templates | grep -E "Feature Count|Extent"
+  ogrinfo -ro -so "$out/$db.gpkg" templates | grep -E "Feature Count|Extent"
 done

@@ -282,7 +282,7 @@ pub fn build(opts: &BuildOptions, cancel: &AtomicBool) -> Result<BuildReport> {
             };
         }
     };
-    info!("selection done at {:.2} s", started.elapsed().as_secs_f64());
+    tracing::debug!("selection done at {:.2} s", started.elapsed().as_secs_f64());
     let summary = writer_thread.join().map_err(|_| BuildError::WriterStopped)??;
     info!("{candidates} candidates passed texture and uniqueness; rejected after: {rejected:?}");
     if summary.template_count == 0 {

@@ -9,7 +9,7 @@ use trn_landmark::{GeoBox, HeightGrid, Template, TemplateQuality, TerrainPatch};
 use crate::pyramid::Window;
 use crate::select::Candidate;
 use crate::source::PixelToCrs;
-use crate::terrain::DemSampler;
+use crate::terrain::Heights;
 
 /// Maps between a window's pixels and WGS84 for one pyramid level of an ortho.
 pub struct WindowGeo<'a> {
@@ -78,7 +78,7 @@ pub enum Reject {
 pub fn extract(
     win: &Window,
     geo: &WindowGeo,
-    dem: &DemSampler,
+    dem: &impl Heights,
     cand: &Candidate,
     p: &ExtractParams,
 ) -> Result<Template, Reject> {

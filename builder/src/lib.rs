@@ -29,7 +29,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
 use serde::Serialize;
 use tracing::{info, warn};
-use trn_landmark::Template;
+use trn_landmark::{GeoBox, Template};
 
 pub use error::{BuildError, Result};
 use extract::{ExtractParams, Reject, WindowGeo};
@@ -766,8 +766,35 @@ fn tile_templates(
     };
     let mut out = Vec::new();
     let mut local: HashMap<Reject, usize> = HashMap::new();
+    // The DEM under the whole window, read once for all its templates.
+    let (w, h) = (win.width as f64 - 1.0, win.height as f64 - 1.0);
+    let outline: Vec<(f64, f64)> = (0..=8)
+        .flat_map(|i| {
+            [
+                (w * i as f64 / 8.0, 0.0),
+                (w * i as f64 / 8.0, h),
+                (0.0, h * i as f64 / 8.0),
+                (w, h * i as f64 / 8.0),
+            ]
+        })
+        .collect();
+    let bbox = if cands.is_empty() { None } else { geo.lonlat(win, &outline).and_then(GeoBox::around) };
+    let patch = bbox.map(|b| {
+        // A margin for the tangent plane's reach past the window's outline.
+        let (mx, my) = (0.05 * (b.max_lon_deg - b.min_lon_deg), 0.05 * (b.max_lat_deg - b.min_lat_deg));
+        worker.dem.patch(&GeoBox::new(
+            b.min_lon_deg - mx,
+            b.min_lat_deg - my,
+            b.max_lon_deg + mx,
+            b.max_lat_deg + my,
+        ))
+    });
     for c in &cands {
-        match extract::extract(win, &geo, &worker.dem, c, &ep) {
+        let got = match &patch {
+            Some(p) => extract::extract(win, &geo, p, c, &ep),
+            None => extract::extract(win, &geo, &worker.dem, c, &ep),
+        };
+        match got {
             Ok(t) => out.push(t),
             Err(r) => *local.entry(r).or_default() += 1,
         }

@@ -7,6 +7,7 @@ use std::sync::Arc;
 use gdal::spatial_ref::CoordTransform;
 use gdal::Dataset;
 use trn_geodesy::GeoidGrid;
+use trn_landmark::GeoBox;
 
 use crate::error::{BuildError, Result};
 use crate::source::{self, RasterInfo};
@@ -59,6 +60,24 @@ pub struct DemSpec {
     pub to_metres: f64,
     /// Geoid added to reach ellipsoidal heights; `None` when already ellipsoidal.
     pub geoid: Option<Arc<GeoidGrid>>,
+}
+
+/// Where a template's terrain heights come from.
+pub trait Heights {
+    /// Ellipsoidal heights (m) at (lon, lat) points; `None` when some point has no DEM.
+    fn heights_ellipsoidal(&self, lonlat: &[(f64, f64)]) -> Option<Vec<f64>>;
+}
+
+impl Heights for DemSampler {
+    fn heights_ellipsoidal(&self, lonlat: &[(f64, f64)]) -> Option<Vec<f64>> {
+        DemSampler::heights_ellipsoidal(self, lonlat)
+    }
+}
+
+impl Heights for DemPatch<'_> {
+    fn heights_ellipsoidal(&self, lonlat: &[(f64, f64)]) -> Option<Vec<f64>> {
+        DemPatch::heights_ellipsoidal(self, lonlat)
+    }
 }
 
 /// Per-thread DEM reader (GDAL handles are not shared across threads).
@@ -163,4 +182,154 @@ fn sample(spec: &DemSpec, ds: &Dataset, ct: &CoordTransform, lonlat: &[(f64, f64
             Some(hgt)
         })
         .collect()
+}
+
+/// The DEMs under one tile, read once: per DEM a window of heights and a
+/// lon/lat -> DEM pixel map interpolated from a grid of exact transformations
+/// (centimetre-accurate over a tile, far below a DEM cell), so templates sample
+/// heights without a GDAL read or a PROJ call each.
+pub struct DemPatch<'a> {
+    parts: Vec<PatchPart<'a>>,
+}
+
+struct PatchPart<'a> {
+    spec: &'a DemSpec,
+    /// Window origin (DEM pixels) and size.
+    c0: isize,
+    r0: isize,
+    w: usize,
+    h: usize,
+    heights: Vec<f64>,
+    /// Grid nodes: (lon, lat) -> (col, row) in pixel-centre convention.
+    grid: TransformGrid,
+}
+
+/// Bilinear interpolation of a smooth map on an n x n grid over a lon/lat box.
+struct TransformGrid {
+    lon0: f64,
+    lat0: f64,
+    dlon: f64,
+    dlat: f64,
+    n: usize,
+    cols: Vec<f64>,
+    rows: Vec<f64>,
+}
+
+impl TransformGrid {
+    fn at(&self, lon: f64, lat: f64) -> Option<(f64, f64)> {
+        let fx = (lon - self.lon0) / self.dlon;
+        let fy = (lat - self.lat0) / self.dlat;
+        let last = (self.n - 1) as f64;
+        if !(fx >= -1e-9 && fy >= -1e-9 && fx <= last + 1e-9 && fy <= last + 1e-9) {
+            return None;
+        }
+        let (ix, iy) = ((fx as usize).min(self.n - 2), (fy as usize).min(self.n - 2));
+        let (tx, ty) = (fx - ix as f64, fy - iy as f64);
+        let i = iy * self.n + ix;
+        let lerp = |v: &[f64]| {
+            (v[i] * (1.0 - tx) + v[i + 1] * tx) * (1.0 - ty)
+                + (v[i + self.n] * (1.0 - tx) + v[i + self.n + 1] * tx) * ty
+        };
+        Some((lerp(&self.cols), lerp(&self.rows)))
+    }
+}
+
+impl DemSampler {
+    /// Reads what every DEM holds under `bbox` (lon/lat degrees).
+    pub fn patch(&self, bbox: &GeoBox) -> DemPatch<'_> {
+        const N: usize = 9;
+        let mut parts = Vec::new();
+        for (spec, ds, ct) in &self.dems {
+            if bbox.intersection(&spec.info.extent).is_none() {
+                continue;
+            }
+            let (dlon, dlat) = (
+                (bbox.max_lon_deg - bbox.min_lon_deg) / (N - 1) as f64,
+                (bbox.max_lat_deg - bbox.min_lat_deg) / (N - 1) as f64,
+            );
+            let mut xs = Vec::with_capacity(N * N);
+            let mut ys = Vec::with_capacity(N * N);
+            for j in 0..N {
+                for i in 0..N {
+                    xs.push(bbox.min_lon_deg + i as f64 * dlon);
+                    ys.push(bbox.min_lat_deg + j as f64 * dlat);
+                }
+            }
+            let mut zs = vec![0.0; xs.len()];
+            if ct.transform_coords(&mut xs, &mut ys, &mut zs).is_err() {
+                continue;
+            }
+            let (cols, rows): (Vec<f64>, Vec<f64>) = xs
+                .iter()
+                .zip(&ys)
+                .map(|(&x, &y)| {
+                    let (c, r) = spec.info.to_crs.invert(x, y);
+                    (c - 0.5, r - 0.5)
+                })
+                .unzip();
+            let (wi, hi) = (spec.info.width as isize, spec.info.height as isize);
+            let lo = |v: &[f64]| v.iter().fold(f64::MAX, |a, &b| a.min(b)).floor() as isize - 1;
+            let hi_ = |v: &[f64]| v.iter().fold(f64::MIN, |a, &b| a.max(b)).floor() as isize + 2;
+            let (c0, c1) = (lo(&cols).clamp(0, wi - 1), hi_(&cols).clamp(0, wi - 1));
+            let (r0, r1) = (lo(&rows).clamp(0, hi - 1), hi_(&rows).clamp(0, hi - 1));
+            let (w, h) = ((c1 - c0 + 1) as usize, (r1 - r0 + 1) as usize);
+            let Ok(band) = ds.rasterband(1) else { continue };
+            let Ok(buf) = band.read_as::<f64>((c0, r0), (w, h), (w, h), None) else { continue };
+            let grid = TransformGrid {
+                lon0: bbox.min_lon_deg,
+                lat0: bbox.min_lat_deg,
+                dlon,
+                dlat,
+                n: N,
+                cols,
+                rows,
+            };
+            parts.push(PatchPart { spec, c0, r0, w, h, heights: buf.into_shape_and_vec().1, grid });
+        }
+        DemPatch { parts }
+    }
+}
+
+impl DemPatch<'_> {
+    /// As [`DemSampler::heights_ellipsoidal`], for points inside the patch's box.
+    pub fn heights_ellipsoidal(&self, lonlat: &[(f64, f64)]) -> Option<Vec<f64>> {
+        lonlat.iter().map(|&(lon, lat)| self.parts.iter().find_map(|p| p.height(lon, lat))).collect()
+    }
+}
+
+impl PatchPart<'_> {
+    fn height(&self, lon: f64, lat: f64) -> Option<f64> {
+        let (c, r) = self.grid.at(lon, lat)?;
+        let spec = self.spec;
+        let (w, h) = (spec.info.width as f64, spec.info.height as f64);
+        if !(c >= -0.5 && r >= -0.5 && c <= w - 0.5 && r <= h - 0.5) {
+            return None;
+        }
+        let (c1, r1) = (self.c0 + self.w as isize - 1, self.r0 + self.h as isize - 1);
+        let at = |cc: isize, rr: isize| -> Option<f64> {
+            // Clamped to the raster's edge pixels (half a pixel past the centres);
+            // a point beyond the window is not in this patch.
+            let (cc, rr) =
+                (cc.clamp(0, spec.info.width as isize - 1), rr.clamp(0, spec.info.height as isize - 1));
+            if cc < self.c0 || rr < self.r0 || cc > c1 || rr > r1 {
+                return None;
+            }
+            let v = self.heights[(rr - self.r0) as usize * self.w + (cc - self.c0) as usize];
+            match spec.nodata {
+                Some(nd) if v == nd || (nd.is_nan() && v.is_nan()) => None,
+                _ if !v.is_finite() => None,
+                _ => Some(v),
+            }
+        };
+        let (fc, fr) = (c.floor(), r.floor());
+        let (tc, tr) = (c - fc, r - fr);
+        let (ic, ir) = (fc as isize, fr as isize);
+        let v = (at(ic, ir)? * (1.0 - tc) + at(ic + 1, ir)? * tc) * (1.0 - tr)
+            + (at(ic, ir + 1)? * (1.0 - tc) + at(ic + 1, ir + 1)? * tc) * tr;
+        let mut hgt = v * spec.to_metres;
+        if let Some(g) = &spec.geoid {
+            hgt += g.undulation_at(lat, lon)?;
+        }
+        Some(hgt)
+    }
 }

@@ -159,29 +159,46 @@ fn sample(spec: &DemSpec, ds: &Dataset, ct: &CoordTransform, lonlat: &[(f64, f64
     let data = buf.data();
     let at = |c: isize, r: isize| -> Option<f64> {
         let (c, r) = (c.clamp(c0, c1), r.clamp(r0, r1));
-        let v = data[(r - r0) as usize * ww + (c - c0) as usize];
-        match spec.nodata {
-            Some(nd) if v == nd || (nd.is_nan() && v.is_nan()) => None,
-            _ if !v.is_finite() => None,
-            _ => Some(v),
-        }
+        valid_height(spec, data[(r - r0) as usize * ww + (c - c0) as usize])
     };
     pos.iter()
         .zip(lonlat)
         .map(|(p, &(lon, lat))| {
             let (c, r) = (*p)?;
-            let (fc, fr) = (c.floor(), r.floor());
-            let (tc, tr) = (c - fc, r - fr);
-            let (ic, ir) = (fc as isize, fr as isize);
-            let v = (at(ic, ir)? * (1.0 - tc) + at(ic + 1, ir)? * tc) * (1.0 - tr)
-                + (at(ic, ir + 1)? * (1.0 - tc) + at(ic + 1, ir + 1)? * tc) * tr;
-            let mut hgt = v * spec.to_metres;
-            if let Some(g) = &spec.geoid {
-                hgt += g.undulation_at(lat, lon)?;
-            }
-            Some(hgt)
+            ellipsoidal_height(spec, &at, c, r, lon, lat)
         })
         .collect()
+}
+
+/// A stored DEM value, or `None` for nodata.
+fn valid_height(spec: &DemSpec, v: f64) -> Option<f64> {
+    match spec.nodata {
+        Some(nd) if v == nd || (nd.is_nan() && v.is_nan()) => None,
+        _ if !v.is_finite() => None,
+        _ => Some(v),
+    }
+}
+
+/// Bilinear DEM height at pixel-centre position (c, r) from the stored values
+/// `at(col, row)`, in metres, made ellipsoidal with the DEM's geoid.
+fn ellipsoidal_height(
+    spec: &DemSpec,
+    at: &dyn Fn(isize, isize) -> Option<f64>,
+    c: f64,
+    r: f64,
+    lon: f64,
+    lat: f64,
+) -> Option<f64> {
+    let (fc, fr) = (c.floor(), r.floor());
+    let (tc, tr) = (c - fc, r - fr);
+    let (ic, ir) = (fc as isize, fr as isize);
+    let v = (at(ic, ir)? * (1.0 - tc) + at(ic + 1, ir)? * tc) * (1.0 - tr)
+        + (at(ic, ir + 1)? * (1.0 - tc) + at(ic + 1, ir + 1)? * tc) * tr;
+    let mut hgt = v * spec.to_metres;
+    if let Some(g) = &spec.geoid {
+        hgt += g.undulation_at(lat, lon)?;
+    }
+    Some(hgt)
 }
 
 /// The DEMs under one tile, read once: per DEM a window of heights and a
@@ -314,22 +331,8 @@ impl PatchPart<'_> {
             if cc < self.c0 || rr < self.r0 || cc > c1 || rr > r1 {
                 return None;
             }
-            let v = self.heights[(rr - self.r0) as usize * self.w + (cc - self.c0) as usize];
-            match spec.nodata {
-                Some(nd) if v == nd || (nd.is_nan() && v.is_nan()) => None,
-                _ if !v.is_finite() => None,
-                _ => Some(v),
-            }
+            valid_height(spec, self.heights[(rr - self.r0) as usize * self.w + (cc - self.c0) as usize])
         };
-        let (fc, fr) = (c.floor(), r.floor());
-        let (tc, tr) = (c - fc, r - fr);
-        let (ic, ir) = (fc as isize, fr as isize);
-        let v = (at(ic, ir)? * (1.0 - tc) + at(ic + 1, ir)? * tc) * (1.0 - tr)
-            + (at(ic, ir + 1)? * (1.0 - tc) + at(ic + 1, ir + 1)? * tc) * tr;
-        let mut hgt = v * spec.to_metres;
-        if let Some(g) = &spec.geoid {
-            hgt += g.undulation_at(lat, lon)?;
-        }
-        Some(hgt)
+        ellipsoidal_height(spec, &at, c, r, lon, lat)
     }
 }

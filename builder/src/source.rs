@@ -227,6 +227,36 @@ pub fn check_not_all_nodata(ds: &Dataset, path: &Path) -> Result<()> {
         Some(band.open_mask_band().map_err(read_err)?)
     };
     let (w, h) = ds.raster_size();
+    let is_valid = |v: f64, m: Option<u8>| !v.is_nan() && nodata.is_none_or(|nd| v != nd) && m != Some(0);
+    // First a sample of up to 64 whole blocks spread over the raster, the last
+    // one included (where truncation shows): cheap, and enough almost always.
+    let (bw, bh) = band.block_size();
+    let (bw, bh) = (bw.max(1), bh.max(1));
+    let (nbx, nby) = (w.div_ceil(bw), h.div_ceil(bh));
+    let blocks = nbx * nby;
+    let picks: Vec<usize> =
+        if blocks <= 64 { (0..blocks).collect() } else { (0..64).map(|k| k * (blocks - 1) / 63).collect() };
+    let sampled_valid = quietly(|| {
+        for &i in &picks {
+            let (x0, y0) = ((i % nbx) * bw, (i / nbx) * bh);
+            let size = (bw.min(w - x0), bh.min(h - y0));
+            let win = (x0 as isize, y0 as isize);
+            let values = band.read_as::<f64>(win, size, size, None).map_err(read_err)?;
+            let masked = match &mask {
+                Some(m) => Some(m.read_as::<u8>(win, size, size, None).map_err(read_err)?),
+                None => None,
+            };
+            let any = values.data().iter().enumerate().any(|(k, &v)| is_valid(v, masked.as_ref().map(|m| m.data()[k])));
+            if any {
+                return Ok::<bool, BuildError>(true);
+            }
+        }
+        Ok(false)
+    })?;
+    if sampled_valid {
+        return Ok(());
+    }
+    // Nothing valid in the sample: look at everything (decimated) before saying so.
     // Decimation factor and the decimated size.
     let f = ((w as f64 * h as f64 / FULL_CHECK_PIXELS as f64).sqrt().ceil() as usize).max(1);
     let (ow, oh) = (w.div_ceil(f), h.div_ceil(f));
@@ -244,11 +274,11 @@ pub fn check_not_all_nodata(ds: &Dataset, path: &Path) -> Result<()> {
                 None => None,
             };
             if !any_valid {
-                any_valid = values.data().iter().enumerate().any(|(i, &v)| {
-                    !v.is_nan()
-                        && nodata.is_none_or(|nd| v != nd)
-                        && masked.as_ref().is_none_or(|m| m.data()[i] != 0)
-                });
+                any_valid = values
+                    .data()
+                    .iter()
+                    .enumerate()
+                    .any(|(i, &v)| is_valid(v, masked.as_ref().map(|m| m.data()[i])));
             }
             oy += n;
         }

@@ -136,17 +136,29 @@ pub fn extract(
         heights_m: heights.iter().map(|&h| h as f32).collect(),
     };
 
+    // Template pixels: the affine map walks the window in fixed steps. The grid
+    // is inside the window when its four corners are (the map is affine).
     let size = p.size_px as usize;
-    let mut pixels = Vec::with_capacity(size * size);
     let c0 = (size as f64 - 1.0) / 2.0;
+    let step_col = px_per_en * Vector2::new(p.gsd_m, 0.0);
+    let step_row = px_per_en * Vector2::new(0.0, -p.gsd_m);
+    let origin = Vector2::new(cx, cy) - step_col * c0 - step_row * c0;
+    let last = (size - 1) as f64;
+    for corner in [origin, origin + step_col * last, origin + step_row * last, origin + (step_col + step_row) * last] {
+        // A micro-pixel of slack covers the rounding of the stepping below.
+        let (xmax, ymax) = ((win.width - 1) as f64 - 1e-6, (win.height - 1) as f64 - 1e-6);
+        if !(corner.x >= 0.0 && corner.y >= 0.0 && corner.x < xmax && corner.y < ymax) {
+            return Err(Reject::OutsideWindow);
+        }
+    }
+    let mut pixels = Vec::with_capacity(size * size);
     for row in 0..size {
-        let nn = (c0 - row as f64) * p.gsd_m;
-        for col in 0..size {
-            let e = (col as f64 - c0) * p.gsd_m;
-            let d = px_per_en * Vector2::new(e, nn);
-            let v = bilinear(win, cx + d.x, cy + d.y)?;
+        let mut q = origin + step_row * row as f64;
+        for _ in 0..size {
+            let v = bilinear_inside(win, q.x, q.y).ok_or(Reject::Nodata)?;
             // v is in 0..=255: adding a half and truncating rounds it.
             pixels.push((v + 0.5) as u8);
+            q += step_col;
         }
     }
 
@@ -177,24 +189,22 @@ pub fn extract(
     Ok(Template { footprint, ..tmp })
 }
 
-fn bilinear(win: &Window, x: f64, y: f64) -> Result<f64, Reject> {
-    if !(x >= 0.0 && y >= 0.0) {
-        return Err(Reject::OutsideWindow);
-    }
+/// Bilinear sample at a position known to lie inside the window (with its
+/// right and lower neighbours); `None` on nodata.
+fn bilinear_inside(win: &Window, x: f64, y: f64) -> Option<f64> {
     // Truncation is floor for non-negative values (and avoids a libm call).
     let (ix, iy) = (x as usize, y as usize);
-    if ix + 1 >= win.width || iy + 1 >= win.height {
-        return Err(Reject::OutsideWindow);
-    }
     let (tx, ty) = (x - ix as f64, y - iy as f64);
     let i = iy * win.width + ix;
     let j = i + win.width;
     if win.valid[i] & win.valid[i + 1] & win.valid[j] & win.valid[j + 1] == 0 {
-        return Err(Reject::Nodata);
+        return None;
     }
     let l = &win.lum;
-    Ok((l[i] as f64 * (1.0 - tx) + l[i + 1] as f64 * tx) * (1.0 - ty)
-        + (l[j] as f64 * (1.0 - tx) + l[j + 1] as f64 * tx) * ty)
+    Some(
+        (l[i] as f64 * (1.0 - tx) + l[i + 1] as f64 * tx) * (1.0 - ty)
+            + (l[j] as f64 * (1.0 - tx) + l[j + 1] as f64 * tx) * ty,
+    )
 }
 
 /// Least-squares plane u = a e + b n + c; returns its unit normal (ENU) and the RMS residual.

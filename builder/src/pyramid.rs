@@ -2,6 +2,7 @@
 //! GDAL, each coarser level from a raw temporary file that the level below
 //! writes (2x2 box filter), so memory stays bounded by the window size.
 
+use std::cell::RefCell;
 use std::fs::File;
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
@@ -33,6 +34,7 @@ pub struct OrthoReader {
     use_mask: bool,
     width: usize,
     height: usize,
+    scratch: RefCell<Scratch>,
 }
 
 impl OrthoReader {
@@ -49,63 +51,93 @@ impl OrthoReader {
         }
         let flags = ds.rasterband(lum.bands[0].0).map_err(rerr)?.mask_flags().map_err(rerr)?;
         let use_mask = !flags.is_all_valid() && !flags.is_nodata();
-        Ok(Self { path: path.into(), ds, lum: lum.clone(), nodata, use_mask, width, height })
+        Ok(Self {
+            path: path.into(),
+            ds,
+            lum: lum.clone(),
+            nodata,
+            use_mask,
+            width,
+            height,
+            scratch: RefCell::new(Scratch::default()),
+        })
     }
 
     /// Reads a window; pixels outside the raster are invalid.
     pub fn read(&self, x0: isize, y0: isize, width: usize, height: usize) -> Result<Window> {
-        let mut lum = vec![0f32; width * height];
-        let mut valid = vec![0u8; width * height];
         let (rx0, ry0) = (x0.max(0), y0.max(0));
         let rx1 = (x0 + width as isize).min(self.width as isize);
         let ry1 = (y0 + height as isize).min(self.height as isize);
-        if rx1 > rx0 && ry1 > ry0 {
-            let (rw, rh) = ((rx1 - rx0) as usize, (ry1 - ry0) as usize);
-            let rerr = |e: gdal::errors::GdalError| BuildError::Read {
-                path: self.path.clone(),
-                reason: crate::source::gdal_reason(&e, &self.path),
-            };
-            let mut acc = vec![0f32; rw * rh];
-            let mut ok = vec![1u8; rw * rh];
-            let mut buf = vec![0f32; rw * rh];
-            for (k, &(b, wgt)) in self.lum.bands.iter().enumerate() {
-                let band = self.ds.rasterband(b).map_err(rerr)?;
-                band.read_into_slice::<f32>((rx0, ry0), (rw, rh), (rw, rh), &mut buf, None).map_err(rerr)?;
-                if let Some(nd) = self.nodata[k] {
-                    let nd = nd as f32;
-                    for (o, &v) in ok.iter_mut().zip(&buf) {
-                        if v == nd || v.is_nan() {
-                            *o = 0;
-                        }
-                    }
+        if rx1 <= rx0 || ry1 <= ry0 {
+            return Ok(Window { x0, y0, width, height, lum: vec![0f32; width * height], valid: vec![0u8; width * height] });
+        }
+        let (rw, rh) = ((rx1 - rx0) as usize, (ry1 - ry0) as usize);
+        let rerr = |e: gdal::errors::GdalError| BuildError::Read {
+            path: self.path.clone(),
+            reason: crate::source::gdal_reason(&e, &self.path),
+        };
+        // Scratch buffers live with the reader: no allocation and no zeroing per tile.
+        let mut scratch = self.scratch.borrow_mut();
+        let Scratch { acc, ok, band_buf, mask_buf } = &mut *scratch;
+        for v in [&mut *acc, &mut *band_buf] {
+            v.resize(rw * rh, 0.0);
+        }
+        ok.resize(rw * rh, 0);
+        for (k, &(b, wgt)) in self.lum.bands.iter().enumerate() {
+            let band = self.ds.rasterband(b).map_err(rerr)?;
+            band.read_into_slice::<f32>((rx0, ry0), (rw, rh), (rw, rh), band_buf, None).map_err(rerr)?;
+            let nd = self.nodata[k].map(|v| v as f32);
+            if k == 0 {
+                for ((a, o), &v) in acc.iter_mut().zip(ok.iter_mut()).zip(band_buf.iter()) {
+                    *a = wgt * v;
+                    *o = u8::from(!(Some(v) == nd || v.is_nan()));
                 }
-                for (a, &v) in acc.iter_mut().zip(&buf) {
+            } else {
+                for ((a, o), &v) in acc.iter_mut().zip(ok.iter_mut()).zip(band_buf.iter()) {
                     *a += wgt * v;
-                }
-            }
-            if self.use_mask {
-                let band = self.ds.rasterband(self.lum.bands[0].0).map_err(rerr)?;
-                let mask = band.open_mask_band().map_err(rerr)?;
-                let mut m = vec![0u8; rw * rh];
-                mask.read_into_slice::<u8>((rx0, ry0), (rw, rh), (rw, rh), &mut m, None).map_err(rerr)?;
-                for (o, &v) in ok.iter_mut().zip(&m) {
-                    if v == 0 {
+                    if Some(v) == nd || v.is_nan() {
                         *o = 0;
                     }
                 }
             }
-            let (off, sc) = (self.lum.offset, self.lum.scale);
-            for r in 0..rh {
-                let dst = ((ry0 - y0) as usize + r) * width + (rx0 - x0) as usize;
-                for c in 0..rw {
-                    let v = (acc[r * rw + c] - off) * sc;
-                    lum[dst + c] = v.clamp(0.0, 255.0);
-                    valid[dst + c] = ok[r * rw + c];
+        }
+        if self.use_mask {
+            let band = self.ds.rasterband(self.lum.bands[0].0).map_err(rerr)?;
+            let mask = band.open_mask_band().map_err(rerr)?;
+            mask_buf.resize(rw * rh, 0);
+            mask.read_into_slice::<u8>((rx0, ry0), (rw, rh), (rw, rh), mask_buf, None).map_err(rerr)?;
+            for (o, &v) in ok.iter_mut().zip(mask_buf.iter()) {
+                if v == 0 {
+                    *o = 0;
                 }
             }
         }
+        let (off, sc) = (self.lum.offset, self.lum.scale);
+        let to_lum = |v: &f32| ((v - off) * sc).clamp(0.0, 255.0);
+        if rw == width && rh == height {
+            // The whole window is inside the raster (the usual case).
+            return Ok(Window { x0, y0, width, height, lum: acc.iter().map(to_lum).collect(), valid: ok.clone() });
+        }
+        let mut lum = vec![0f32; width * height];
+        let mut valid = vec![0u8; width * height];
+        for r in 0..rh {
+            let dst = ((ry0 - y0) as usize + r) * width + (rx0 - x0) as usize;
+            for (d, v) in lum[dst..dst + rw].iter_mut().zip(&acc[r * rw..(r + 1) * rw]) {
+                *d = to_lum(v);
+            }
+            valid[dst..dst + rw].copy_from_slice(&ok[r * rw..(r + 1) * rw]);
+        }
         Ok(Window { x0, y0, width, height, lum, valid })
     }
+}
+
+/// Reusable buffers of one reader.
+#[derive(Default)]
+struct Scratch {
+    acc: Vec<f32>,
+    ok: Vec<u8>,
+    band_buf: Vec<f32>,
+    mask_buf: Vec<u8>,
 }
 
 /// A pyramid level: f32 luminance and u8 validity, in memory when it fits the

@@ -229,95 +229,106 @@ pub fn half_resolution(img: &LumWindow) -> (Vec<f32>, usize, usize) {
     (out, hw, hh)
 }
 
-/// A template cut from a window, zero-mean, sampled every `step`-th pixel.
+/// Integral images of a window's values and squares: the sum and the sum of
+/// squares of any rectangle in O(1), for the NCC denominators.
+pub struct WindowSums {
+    stride: usize,
+    s1: Vec<f64>,
+    s2: Vec<f64>,
+}
+
+impl WindowSums {
+    pub fn new(img: &LumWindow) -> Self {
+        let stride = img.width + 1;
+        let mut s1 = vec![0f64; stride * (img.height + 1)];
+        let mut s2 = vec![0f64; stride * (img.height + 1)];
+        for y in 0..img.height {
+            let (mut r1, mut r2) = (0f64, 0f64);
+            for x in 0..img.width {
+                let v = img.lum[y * img.width + x] as f64;
+                r1 += v;
+                r2 += v * v;
+                let i = (y + 1) * stride + x + 1;
+                s1[i] = s1[i - stride] + r1;
+                s2[i] = s2[i - stride] + r2;
+            }
+        }
+        Self { stride, s1, s2 }
+    }
+
+    /// (sum, sum of squares) over `w x h` pixels from (x0, y0).
+    fn rect(&self, x0: usize, y0: usize, w: usize, h: usize) -> (f64, f64) {
+        let (a, b) = (y0 * self.stride + x0, y0 * self.stride + x0 + w);
+        let (c, d) = ((y0 + h) * self.stride + x0, (y0 + h) * self.stride + x0 + w);
+        (self.s1[d] - self.s1[b] - self.s1[c] + self.s1[a], self.s2[d] - self.s2[b] - self.s2[c] + self.s2[a])
+    }
+}
+
+/// A template cut from a window, zero-mean.
 pub struct Patch {
     cx: usize,
     cy: usize,
     win_w: usize,
     win_h: usize,
-    step: usize,
     values: Vec<f32>,
-    norm: f32,
+    norm: f64,
 }
 
 impl Patch {
-    pub fn new(
-        img: &LumWindow,
-        cx: usize,
-        cy: usize,
-        win_w: usize,
-        win_h: usize,
-        step: usize,
-    ) -> Option<Self> {
+    pub fn new(img: &LumWindow, cx: usize, cy: usize, win_w: usize, win_h: usize) -> Option<Self> {
         let (x0, y0) = (cx.checked_sub(win_w / 2)?, cy.checked_sub(win_h / 2)?);
         if x0 + win_w > img.width || y0 + win_h > img.height {
             return None;
         }
-        let mut values = Vec::new();
-        for r in (0..win_h).step_by(step) {
-            let row = &img.lum[(y0 + r) * img.width + x0..][..win_w];
-            values.extend(row.iter().step_by(step));
+        let mut values = Vec::with_capacity(win_w * win_h);
+        for r in 0..win_h {
+            values.extend_from_slice(&img.lum[(y0 + r) * img.width + x0..][..win_w]);
         }
         let mean = values.iter().map(|&v| v as f64).sum::<f64>() / values.len() as f64;
         values.iter_mut().for_each(|v| *v -= mean as f32);
-        let norm = values.iter().map(|&v| (v as f64) * v as f64).sum::<f64>() as f32;
-        Some(Self { cx, cy, win_w, win_h, step, values, norm })
+        let norm = values.iter().map(|&v| (v as f64) * v as f64).sum::<f64>();
+        Some(Self { cx, cy, win_w, win_h, values, norm })
     }
 
     /// NCC with the window shifted by (dx, dy); `None` when it leaves the image
-    /// or either side is flat.
-    pub fn ncc(&self, img: &LumWindow, dx: isize, dy: isize) -> Option<f32> {
+    /// or either side is flat. Only the cross term is summed here: the
+    /// template is zero-mean, and the window's own sums come from `sums`.
+    pub fn ncc(&self, img: &LumWindow, sums: &WindowSums, dx: isize, dy: isize) -> Option<f32> {
         let sx0 = self.cx as isize - (self.win_w / 2) as isize + dx;
         let sy0 = self.cy as isize - (self.win_h / 2) as isize + dy;
-        if sx0 < 0
-            || sy0 < 0
-            || sx0 as usize + self.win_w > img.width
-            || sy0 as usize + self.win_h > img.height
-        {
+        if sx0 < 0 || sy0 < 0 || sx0 as usize + self.win_w > img.width || sy0 as usize + self.win_h > img.height {
             return None;
         }
         let (sx0, sy0) = (sx0 as usize, sy0 as usize);
-        let cols = self.win_w.div_ceil(self.step);
-        // Eight independent lanes: the compiler vectorises these sums.
-        let (mut ts, mut ss, mut s1) = ([0f32; 8], [0f32; 8], [0f32; 8]);
-        let mut lane = |t: f32, s: f32, k: usize| {
-            ts[k] += t * s;
-            ss[k] += s * s;
-            s1[k] += s;
-        };
-        for (k, r) in (0..self.win_h).step_by(self.step).enumerate() {
+        // Eight independent lanes: the compiler vectorises the sum.
+        let mut lanes = [0f32; 8];
+        for r in 0..self.win_h {
             let srow = &img.lum[(sy0 + r) * img.width + sx0..][..self.win_w];
-            let trow = &self.values[k * cols..(k + 1) * cols];
-            if self.step == 1 {
-                let (tc, sc) = (trow.chunks_exact(8), srow.chunks_exact(8));
-                let (tr, sr) = (tc.remainder(), sc.remainder());
-                for (t8, s8) in tc.zip(sc) {
-                    for k in 0..8 {
-                        lane(t8[k], s8[k], k);
-                    }
-                }
-                for (&t, &s) in tr.iter().zip(sr) {
-                    lane(t, s, 0);
-                }
-            } else {
-                for (&t, &s) in trow.iter().zip(srow.iter().step_by(self.step)) {
-                    lane(t, s, 0);
+            let trow = &self.values[r * self.win_w..(r + 1) * self.win_w];
+            let (tc, sc) = (trow.chunks_exact(8), srow.chunks_exact(8));
+            let (tr, sr) = (tc.remainder(), sc.remainder());
+            for (t8, s8) in tc.zip(sc) {
+                for k in 0..8 {
+                    lanes[k] += t8[k] * s8[k];
                 }
             }
+            for (k, (&t, &s)) in tr.iter().zip(sr).enumerate() {
+                lanes[k] += t * s;
+            }
         }
-        let (ts, ss, s1): (f32, f32, f32) = (ts.iter().sum(), ss.iter().sum(), s1.iter().sum());
-        // Sum of t' * s equals sum of t' * (s - mean s) because t' has zero mean.
-        let n = self.values.len() as f32;
-        let vs = ss - s1 * s1 / n;
+        let cross: f64 = lanes.iter().map(|&v| v as f64).sum();
+        let n = self.values.len() as f64;
+        let (s1, s2) = sums.rect(sx0, sy0, self.win_w, self.win_h);
+        let vs = s2 - s1 * s1 / n;
         if vs <= 1e-6 || self.norm <= 1e-6 {
             return None;
         }
-        Some(ts / (self.norm * vs).sqrt())
+        Some((cross / (self.norm * vs).sqrt()) as f32)
     }
 }
 
 /// Normalised cross-correlation of the template centred at (cx, cy) with the
-/// window shifted by (dx, dy), sampling every `step`-th pixel.
+/// window shifted by (dx, dy).
 #[cfg(test)]
 #[allow(clippy::too_many_arguments)]
 fn ncc_shift(
@@ -328,9 +339,8 @@ fn ncc_shift(
     dy: isize,
     win_w: usize,
     win_h: usize,
-    step: usize,
 ) -> Option<f32> {
-    Patch::new(img, cx, cy, win_w, win_h, step)?.ncc(img, dx, dy)
+    Patch::new(img, cx, cy, win_w, win_h)?.ncc(img, &WindowSums::new(img), dx, dy)
 }
 
 /// Highest NCC of the template at (cx, cy) against its surroundings within
@@ -339,8 +349,8 @@ fn ncc_shift(
 /// the NCC surface; anything else sits beyond a valley and so belongs to
 /// another peak or a ridge. Smooth imagery thus keeps its wide main lobe, while
 /// repeated patterns and edges (ridges) score high.
-pub fn second_peak(img: &LumWindow, cx: usize, cy: usize, p: &SelectParams) -> f32 {
-    let Some(patch) = Patch::new(img, cx, cy, p.win_w, p.win_h, 1) else {
+pub fn second_peak(img: &LumWindow, sums: &WindowSums, cx: usize, cy: usize, p: &SelectParams) -> f32 {
+    let Some(patch) = Patch::new(img, cx, cy, p.win_w, p.win_h) else {
         return 1.0;
     };
     let r = p.search_radius as isize;
@@ -348,7 +358,7 @@ pub fn second_peak(img: &LumWindow, cx: usize, cy: usize, p: &SelectParams) -> f
     let mut surface = vec![f32::NAN; side * side];
     for dy in -r..=r {
         for dx in -r..=r {
-            if let Some(v) = patch.ncc(img, dx, dy) {
+            if let Some(v) = patch.ncc(img, sums, dx, dy) {
                 surface[(dy + r) as usize * side + (dx + r) as usize] = v;
             }
         }
@@ -392,6 +402,7 @@ pub fn select(img: &LumWindow, p: &SelectParams, core: Core) -> Vec<Candidate> {
     let (half, hw, hh) = half_resolution(img);
     let valid_half = vec![1u8; hw * hh];
     let coarse_img = LumWindow { width: hw, height: hh, lum: &half, valid: &valid_half };
+    let coarse_sums = WindowSums::new(&coarse_img);
     let coarse_p = SelectParams {
         win_w: (p.win_w / 2).max(2),
         win_h: (p.win_h / 2).max(2),
@@ -441,7 +452,7 @@ pub fn select(img: &LumWindow, p: &SelectParams, core: Core) -> Vec<Candidate> {
             tried += 1;
             // Uniqueness is judged at half resolution: a sixteenth of the work, and
             // low-passing tends to raise a competing peak rather than hide it.
-            let sp = second_peak(&coarse_img, x / 2, y / 2, &coarse_p);
+            let sp = second_peak(&coarse_img, &coarse_sums, x / 2, y / 2, &coarse_p);
             if sp > p.max_second_peak {
                 continue;
             }
@@ -499,7 +510,7 @@ mod tests {
         let lum = noise(w, h, 9);
         let valid = vec![1u8; w * h];
         let img = LumWindow { width: w, height: h, lum: &lum, valid: &valid };
-        assert!((ncc_shift(&img, 20, 20, 0, 0, 9, 9, 1).unwrap() - 1.0).abs() < 1e-6);
+        assert!((ncc_shift(&img, 20, 20, 0, 0, 9, 9).unwrap() - 1.0).abs() < 1e-6);
         // Brute-force NCC by definition.
         let (dx, dy) = (3isize, -2isize);
         let t: Vec<f64> = (0..81).map(|k| lum[(16 + k / 9) * w + 16 + k % 9] as f64).collect();
@@ -511,9 +522,9 @@ mod tests {
         let den = (t.iter().map(|a| (a - mt).powi(2)).sum::<f64>()
             * s.iter().map(|b| (b - ms).powi(2)).sum::<f64>())
         .sqrt();
-        let got = ncc_shift(&img, 20, 20, dx, dy, 9, 9, 1).unwrap() as f64;
+        let got = ncc_shift(&img, 20, 20, dx, dy, 9, 9).unwrap() as f64;
         assert!((got - num / den).abs() < 1e-5);
-        assert!(ncc_shift(&img, 20, 20, 30, 0, 9, 9, 1).is_none());
+        assert!(ncc_shift(&img, 20, 20, 30, 0, 9, 9).is_none());
     }
 
     fn params() -> SelectParams {
@@ -612,7 +623,7 @@ mod tests {
         let edge: Vec<f32> =
             (0..w * h).map(|i| if i % w < 30 { 60.0 } else { 160.0 } + 0.01 * noise[i]).collect();
         let img = LumWindow { width: w, height: h, lum: &edge, valid: &valid };
-        assert!(second_peak(&img, 30, 30, &params()) > 0.95);
+        assert!(second_peak(&img, &WindowSums::new(&img), 30, 30, &params()) > 0.95);
         // One smooth bump: the NCC falls off slowly but never rises again.
         let bump: Vec<f32> = (0..w * h)
             .map(|i| {
@@ -621,7 +632,7 @@ mod tests {
             })
             .collect();
         let img = LumWindow { width: w, height: h, lum: &bump, valid: &valid };
-        assert!(second_peak(&img, 30, 30, &params()) < 0.5);
+        assert!(second_peak(&img, &WindowSums::new(&img), 30, 30, &params()) < 0.5);
     }
 
     #[test]
@@ -633,7 +644,7 @@ mod tests {
         let valid = vec![1u8; w * h];
         let img = LumWindow { width: w, height: h, lum: &lum, valid: &valid };
         assert!(select(&img, &params(), Core { x0: 0, x1: w, y0: 0, y1: h }).is_empty());
-        let sp = second_peak(&img, 30, 30, &params());
+        let sp = second_peak(&img, &WindowSums::new(&img), 30, 30, &params());
         assert!(sp > 0.999);
     }
 }

@@ -240,22 +240,20 @@ pub struct WindowSums {
 impl WindowSums {
     pub fn new(img: &LumWindow) -> Self {
         let stride = img.width + 1;
-        // Built by pushing: no zero-fill of memory that is written anyway.
-        let n = stride * (img.height + 1);
-        let (mut s1, mut s2) = (Vec::with_capacity(n), Vec::with_capacity(n));
-        s1.resize(stride, 0f64);
-        s2.resize(stride, 0f64);
+        let mut s1 = vec![0f64; stride * (img.height + 1)];
+        let mut s2 = vec![0f64; stride * (img.height + 1)];
         for y in 0..img.height {
             let (mut r1, mut r2) = (0f64, 0f64);
-            s1.push(0.0);
-            s2.push(0.0);
-            for x in 0..img.width {
-                let v = img.lum[y * img.width + x] as f64;
+            let row = &img.lum[y * img.width..(y + 1) * img.width];
+            let (prev, cur) = s1.split_at_mut((y + 1) * stride);
+            let (prev2, cur2) = s2.split_at_mut((y + 1) * stride);
+            let (above, above2) = (&prev[y * stride..], &prev2[y * stride..]);
+            for (x, &v) in row.iter().enumerate() {
+                let v = v as f64;
                 r1 += v;
                 r2 += v * v;
-                let above = y * stride + x + 1;
-                s1.push(s1[above] + r1);
-                s2.push(s2[above] + r2);
+                cur[x + 1] = above[x + 1] + r1;
+                cur2[x + 1] = above2[x + 1] + r2;
             }
         }
         Self { stride, s1, s2 }

@@ -144,7 +144,9 @@ pub fn extract(
     let step_row = px_per_en * Vector2::new(0.0, -p.gsd_m);
     let origin = Vector2::new(cx, cy) - step_col * c0 - step_row * c0;
     let last = (size - 1) as f64;
-    for corner in [origin, origin + step_col * last, origin + step_row * last, origin + (step_col + step_row) * last] {
+    for corner in
+        [origin, origin + step_col * last, origin + step_row * last, origin + (step_col + step_row) * last]
+    {
         // A micro-pixel of slack covers the rounding of the stepping below.
         let (xmax, ymax) = ((win.width - 1) as f64 - 1e-6, (win.height - 1) as f64 - 1e-6);
         if !(corner.x >= 0.0 && corner.y >= 0.0 && corner.x < xmax && corner.y < ymax) {

@@ -76,7 +76,14 @@ impl OrthoReader {
         let rx1 = (x0 + width as isize).min(self.width as isize);
         let ry1 = (y0 + height as isize).min(self.height as isize);
         if rx1 <= rx0 || ry1 <= ry0 {
-            return Ok(Window { x0, y0, width, height, lum: vec![0f32; width * height], valid: vec![0u8; width * height] });
+            return Ok(Window {
+                x0,
+                y0,
+                width,
+                height,
+                lum: vec![0f32; width * height],
+                valid: vec![0u8; width * height],
+            });
         }
         let (rw, rh) = ((rx1 - rx0) as usize, (ry1 - ry0) as usize);
         let rerr = |e: gdal::errors::GdalError| BuildError::Read {
@@ -132,7 +139,14 @@ impl OrthoReader {
         let to_lum = |v: &f32| ((v - off) * sc).clamp(0.0, 255.0);
         if rw == width && rh == height {
             // The whole window is inside the raster (the usual case).
-            return Ok(Window { x0, y0, width, height, lum: acc.iter().map(to_lum).collect(), valid: ok.clone() });
+            return Ok(Window {
+                x0,
+                y0,
+                width,
+                height,
+                lum: acc.iter().map(to_lum).collect(),
+                valid: ok.clone(),
+            });
         }
         let mut lum = vec![0f32; width * height];
         let mut valid = vec![0u8; width * height];

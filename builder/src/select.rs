@@ -299,7 +299,11 @@ impl Patch {
     pub fn ncc(&self, img: &LumWindow, sums: &WindowSums, dx: isize, dy: isize) -> Option<f32> {
         let sx0 = self.cx as isize - (self.win_w / 2) as isize + dx;
         let sy0 = self.cy as isize - (self.win_h / 2) as isize + dy;
-        if sx0 < 0 || sy0 < 0 || sx0 as usize + self.win_w > img.width || sy0 as usize + self.win_h > img.height {
+        if sx0 < 0
+            || sy0 < 0
+            || sx0 as usize + self.win_w > img.width
+            || sy0 as usize + self.win_h > img.height
+        {
             return None;
         }
         let (sx0, sy0) = (sx0 as usize, sy0 as usize);

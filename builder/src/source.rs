@@ -246,7 +246,11 @@ pub fn check_not_all_nodata(ds: &Dataset, path: &Path) -> Result<()> {
                 Some(m) => Some(m.read_as::<u8>(win, size, size, None).map_err(read_err)?),
                 None => None,
             };
-            let any = values.data().iter().enumerate().any(|(k, &v)| is_valid(v, masked.as_ref().map(|m| m.data()[k])));
+            let any = values
+                .data()
+                .iter()
+                .enumerate()
+                .any(|(k, &v)| is_valid(v, masked.as_ref().map(|m| m.data()[k])));
             if any {
                 return Ok::<bool, BuildError>(true);
             }

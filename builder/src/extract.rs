@@ -11,13 +11,12 @@ use crate::select::Candidate;
 use crate::source::PixelToCrs;
 use crate::terrain::Heights;
 
-/// Maps between a window's pixels and WGS84 for one pyramid level of an ortho.
+/// Maps a window's pixels to WGS84 for one pyramid level of an ortho.
 pub struct WindowGeo<'a> {
     pub to_crs: PixelToCrs,
     /// Native pixels per level pixel (2^p).
     pub scale: f64,
     pub to_wgs: &'a CoordTransform,
-    pub from_wgs: &'a CoordTransform,
 }
 
 impl WindowGeo<'_> {
@@ -34,23 +33,6 @@ impl WindowGeo<'_> {
         let mut zs = vec![0.0; xs.len()];
         self.to_wgs.transform_coords(&mut xs, &mut ys, &mut zs).ok()?;
         Some(xs.into_iter().zip(ys).collect())
-    }
-
-    /// Window pixel coordinates (centre convention) of (lon, lat) points.
-    pub fn window_px(&self, win: &Window, lonlat: &[(f64, f64)]) -> Option<Vec<(f64, f64)>> {
-        let mut xs: Vec<f64> = lonlat.iter().map(|p| p.0).collect();
-        let mut ys: Vec<f64> = lonlat.iter().map(|p| p.1).collect();
-        let mut zs = vec![0.0; xs.len()];
-        self.from_wgs.transform_coords(&mut xs, &mut ys, &mut zs).ok()?;
-        Some(
-            xs.into_iter()
-                .zip(ys)
-                .map(|(x, y)| {
-                    let (nc, nr) = self.to_crs.invert(x, y);
-                    (nc / self.scale - 0.5 - win.x0 as f64, nr / self.scale - 0.5 - win.y0 as f64)
-                })
-                .collect(),
-        )
     }
 }
 

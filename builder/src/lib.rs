@@ -524,7 +524,6 @@ struct Worker {
     ortho: OrthoReader,
     dem: DemSampler,
     to_wgs: CoordTransform,
-    from_wgs: CoordTransform,
 }
 
 // SAFETY: GDAL datasets and OGR coordinate transformations may move between
@@ -545,7 +544,6 @@ impl Worker {
             ortho: OrthoReader::open(&g.path, &g.lum)?,
             dem: DemSampler::open(dems)?,
             to_wgs: CoordTransform::new(&srs, &wgs).map_err(err)?,
-            from_wgs: CoordTransform::new(&wgs, &srs).map_err(err)?,
         })
     }
 }
@@ -755,7 +753,7 @@ fn tile_templates(
     let core = Core { x0: margin, x1: margin + core_size.0, y0: margin, y1: margin + core_size.1 };
     let cands = select::select(&img, &plan.select, core);
     let scale = 2f64.powi(plan.pyramid_level as i32);
-    let geo = WindowGeo { to_crs: g.info.to_crs, scale, to_wgs: &worker.to_wgs, from_wgs: &worker.from_wgs };
+    let geo = WindowGeo { to_crs: g.info.to_crs, scale, to_wgs: &worker.to_wgs };
     let ep = ExtractParams {
         level: plan.level,
         gsd_m: plan.gsd_m,

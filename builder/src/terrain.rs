@@ -1,7 +1,7 @@
 //! DEM access: ellipsoidal heights at WGS84 points, read through small GDAL
 //! windows, with the geoid correction the DEM's vertical datum needs.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::Arc;
 
 use gdal::spatial_ref::CoordTransform;
@@ -69,14 +69,29 @@ pub trait Heights {
 }
 
 impl Heights for DemSampler {
+    /// Ellipsoidal heights (m) at (lon, lat) points, each from the first DEM
+    /// (in the order given) with valid data there, so tiles of a DEM mosaic
+    /// join; `None` when some point has no DEM.
     fn heights_ellipsoidal(&self, lonlat: &[(f64, f64)]) -> Option<Vec<f64>> {
-        DemSampler::heights_ellipsoidal(self, lonlat)
+        let mut out: Vec<Option<f64>> = vec![None; lonlat.len()];
+        for (spec, ds, ct) in &self.dems {
+            let missing: Vec<usize> = (0..lonlat.len()).filter(|&i| out[i].is_none()).collect();
+            if missing.is_empty() {
+                break;
+            }
+            let pts: Vec<(f64, f64)> = missing.iter().map(|&i| lonlat[i]).collect();
+            for (k, h) in sample(spec, ds, ct, &pts).into_iter().enumerate() {
+                out[missing[k]] = h;
+            }
+        }
+        out.into_iter().collect()
     }
 }
 
 impl Heights for DemPatch<'_> {
+    /// Points outside the patch's box have no height here.
     fn heights_ellipsoidal(&self, lonlat: &[(f64, f64)]) -> Option<Vec<f64>> {
-        DemPatch::heights_ellipsoidal(self, lonlat)
+        lonlat.iter().map(|&(lon, lat)| self.parts.iter().find_map(|p| p.height(lon, lat))).collect()
     }
 }
 
@@ -98,28 +113,6 @@ impl DemSampler {
             dems.push((s.clone(), ds, ct));
         }
         Ok(Self { dems })
-    }
-
-    /// Ellipsoidal heights (m) at (lon, lat) points, each from the first DEM
-    /// (in the order given) with valid data there, so tiles of a DEM mosaic
-    /// join; `None` when some point has no DEM.
-    pub fn heights_ellipsoidal(&self, lonlat: &[(f64, f64)]) -> Option<Vec<f64>> {
-        let mut out: Vec<Option<f64>> = vec![None; lonlat.len()];
-        for (spec, ds, ct) in &self.dems {
-            let missing: Vec<usize> = (0..lonlat.len()).filter(|&i| out[i].is_none()).collect();
-            if missing.is_empty() {
-                break;
-            }
-            let pts: Vec<(f64, f64)> = missing.iter().map(|&i| lonlat[i]).collect();
-            for (k, h) in sample(spec, ds, ct, &pts).into_iter().enumerate() {
-                out[missing[k]] = h;
-            }
-        }
-        out.into_iter().collect()
-    }
-
-    pub fn paths(&self) -> Vec<PathBuf> {
-        self.dems.iter().map(|d| d.0.info.path.clone()).collect()
     }
 }
 
@@ -304,13 +297,6 @@ impl DemSampler {
             parts.push(PatchPart { spec, c0, r0, w, h, heights: buf.into_shape_and_vec().1, grid });
         }
         DemPatch { parts }
-    }
-}
-
-impl DemPatch<'_> {
-    /// As [`DemSampler::heights_ellipsoidal`], for points inside the patch's box.
-    pub fn heights_ellipsoidal(&self, lonlat: &[(f64, f64)]) -> Option<Vec<f64>> {
-        lonlat.iter().map(|&(lon, lat)| self.parts.iter().find_map(|p| p.height(lon, lat))).collect()
     }
 }
 

@@ -29,7 +29,13 @@ PY
 fi
 
 if ! [ -f "$real/L7_ETMs.tif" ] || ! [ -f "$real/olinda_dem_utm25s.tif" ]; then
-  (cd "$cache" && apt-get download r-cran-stars >/dev/null 2>&1)
+  if ! (cd "$cache" && apt-get download r-cran-stars >/dev/null 2>&1); then
+    # Package lists may be empty on a fresh machine: refresh them once and retry.
+    sudo=""
+    [ "$(id -u)" -eq 0 ] || sudo="sudo"
+    $sudo apt-get update -qq
+    (cd "$cache" && apt-get download r-cran-stars >/dev/null 2>&1)
+  fi
   deb=$(ls -t "$cache"/r-cran-stars_*.deb | head -n1)
   x=$(mktemp -d)
   dpkg-deb -x "$deb" "$x"

@@ -280,9 +280,19 @@ fn bad_output_folder_and_numeric_options() {
         ("--levels", "0"),
         ("--levels", "13"),
         ("--base-gsd", "0"),
+        // The synthetic ortho has 8 m pixels: a 1 m level 0 would only upsample.
+        ("--base-gsd", "1"),
         ("--max-second-peak", "1.5"),
+        ("--max-relief", "-1"),
+        ("--max-relief", "nan"),
+        ("--max-gsd", "-5"),
+        ("--min-contrast", "nan"),
+        ("--min-shi-tomasi", "-1"),
+        ("--search-radius", "0"),
+        ("--threads", "0"),
     ] {
-        let args = [&base[..], &["--out", s(&out), option, value]].concat();
+        let flag = format!("{option}={value}");
+        let args = [&base[..], &["--out", s(&out), &flag]].concat();
         let e = fails(d, &keep_sub, &args, &[option]);
         eprintln!("{e}");
     }

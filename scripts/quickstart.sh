@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Quick start: install, fetch the real samples, and build a landmark database
-# from each, then show what is in them.
+# from each; then the main job end to end on the synthetic map: build its
+# database, simulate a balloon flight, navigate it, and print the error.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/install-deps.sh
@@ -25,3 +26,10 @@ print(f"{r['out']}: {r['templates']} templates [{levels}] in {r['seconds']:.2f} 
 PY
   ogrinfo -ro -so "$out/$db.gpkg" templates | grep -E "Feature Count|Extent"
 done
+echo "== Simulated flight: balloon descent from 30 km, downward 32-degree camera, over the synthetic map"
+scripts/sim_samples.sh balloon-nadir -- --duration 30
+flight=target/sim-data/flights/balloon-nadir
+mkdir -p "$out/balloon-nadir"
+$trn navigate --db target/sim-data/map.gpkg --flight "$flight" --out "$out/balloon-nadir/poses.csv" > /dev/null
+$trn evaluate --flight "$flight" --poses "$out/balloon-nadir/poses.csv" --plot-dir "$out/balloon-nadir/plots"
+echo "plots: $out/balloon-nadir/plots/"

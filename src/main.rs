@@ -31,6 +31,12 @@ enum Command {
     Build(BuildArgs),
     /// Write a synthetic ortho + DEM pair (GeoTIFF) for tests and benchmarks.
     Synth(SynthArgs),
+    /// Simulate a flight over an ortho + DEM: camera images, IMU, truth (flight format).
+    Simulate(SimulateArgs),
+    /// Navigate a flight against a landmark database: one pose per processed image.
+    Navigate(NavigateArgs),
+    /// Score navigator poses.csv files against a flight's truth.csv (tables, JSON, plots).
+    Evaluate(EvaluateArgs),
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -127,12 +133,102 @@ struct SynthArgs {
     /// Width of a nodata frame around the ortho (pixels).
     #[arg(long, default_value_t = 0)]
     nodata_border: usize,
+    /// Terrain relief of the DEM (m, amplitude of the fractal heights above 1500 m).
+    #[arg(long, default_value_t = 60.0)]
+    relief: f64,
+}
+
+#[derive(clap::Args)]
+struct SimulateArgs {
+    /// Orthoimage the camera sees (any GDAL raster, any CRS).
+    #[arg(long)]
+    ortho: PathBuf,
+    /// Elevation model(s): any GDAL raster, any CRS.
+    #[arg(long = "dem", required = true, num_args = 1..)]
+    dems: Vec<PathBuf>,
+    /// Scenario (JSON): trajectory, camera, IMU, initial error, realism.
+    #[arg(long)]
+    scenario: PathBuf,
+    /// Output flight folder (replaced atomically when the simulation succeeds).
+    #[arg(long)]
+    out: PathBuf,
+    /// Bands making the luminance, e.g. 3,2,1 (as trn build).
+    #[arg(long, value_delimiter = ',')]
+    ortho_bands: Option<Vec<usize>>,
+    /// Vertical datum of the DEM heights when the file does not say (as trn build).
+    #[arg(long, value_enum)]
+    dem_vertical: Option<VerticalArg>,
+    /// Geoid grid for --dem-vertical geoid.
+    #[arg(long)]
+    geoid: Option<PathBuf>,
+    /// Stop the flight after this many seconds.
+    #[arg(long)]
+    duration: Option<f64>,
+    /// Worker threads (default: all cores).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=1024))]
+    threads: Option<u32>,
+}
+
+#[derive(clap::Args)]
+struct NavigateArgs {
+    /// Landmark database (from trn build).
+    #[arg(long)]
+    db: PathBuf,
+    /// Flight folder (flight format).
+    #[arg(long)]
+    flight: PathBuf,
+    /// Output poses.csv (matches.csv is written next to it).
+    #[arg(long)]
+    out: PathBuf,
+    /// Images per second taken from the flight (default: every image).
+    #[arg(long)]
+    rate: Option<f64>,
+    /// Do not carry the attitude with the gyro between images.
+    #[arg(long)]
+    no_gyro: bool,
+    /// Largest angle between a line of sight and the surface normal (deg).
+    #[arg(long, default_value_t = 75.0)]
+    alpha_max: f64,
+    /// Fewer RANSAC inliers reject the fix.
+    #[arg(long, default_value_t = 8)]
+    min_inliers: usize,
+    /// A height change between accepted fixes above this rejects the fix (m).
+    #[arg(long, default_value_t = 450.0)]
+    max_height_jump: f64,
+    /// Landmarks correlated per image.
+    #[arg(long, default_value_t = 80)]
+    max_landmarks: usize,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
 enum CompressArg {
     Deflate,
     Jpeg,
+}
+
+#[derive(clap::Args)]
+struct EvaluateArgs {
+    /// Flight folder (frames.csv, truth.csv, ...).
+    #[arg(long)]
+    flight: PathBuf,
+    /// Navigator output; several for a comparison table (e.g. 2/4 Hz, with/without gyro).
+    #[arg(long = "poses", required = true)]
+    poses: Vec<PathBuf>,
+    /// Name of each run, in --poses order (default: the poses file's stem); none or one per --poses.
+    #[arg(long = "label")]
+    labels: Vec<String>,
+    /// Per-match residuals, in --poses order (default: matches.csv next to each poses file, if any).
+    #[arg(long = "matches")]
+    matches: Vec<PathBuf>,
+    /// Write trajectory, error, inlier and residual plots (PNG) here; a subfolder per run when several.
+    #[arg(long)]
+    plot_dir: Option<PathBuf>,
+    /// Height of the altitude bands (m).
+    #[arg(long, default_value_t = 5000.0)]
+    band_m: f64,
+    /// Also write the report as JSON.
+    #[arg(long)]
+    json: Option<PathBuf>,
 }
 
 /// mimalloc's `mi_option_purge_delay` (position 15 of `mi_option_e` in the
@@ -153,6 +249,9 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Command::Build(a) => run_build(a),
         Command::Synth(a) => run_synth(a),
+        Command::Simulate(a) => run_simulate(a),
+        Command::Navigate(a) => run_navigate(a),
+        Command::Evaluate(a) => run_evaluate(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -195,6 +294,94 @@ fn run_build(a: BuildArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+fn vertical(v: Option<VerticalArg>) -> Option<DemVertical> {
+    v.map(|v| match v {
+        VerticalArg::Egm96 => DemVertical::Egm96,
+        VerticalArg::Ellipsoid => DemVertical::Ellipsoid,
+        VerticalArg::Geoid => DemVertical::Geoid,
+    })
+}
+
+/// Ctrl-C sets the flag; long jobs stop at the next safe point and clean up.
+fn cancel_flag() -> anyhow::Result<Arc<AtomicBool>> {
+    let cancel = Arc::new(AtomicBool::new(false));
+    let flag = cancel.clone();
+    ctrlc::set_handler(move || flag.store(true, Ordering::Relaxed))?;
+    Ok(cancel)
+}
+
+fn run_simulate(a: SimulateArgs) -> anyhow::Result<()> {
+    if let Some(n) = a.threads {
+        rayon::ThreadPoolBuilder::new().num_threads(n as usize).build_global()?;
+    }
+    if let Some(d) = a.duration {
+        anyhow::ensure!(
+            d.is_finite() && d >= 0.0,
+            "invalid option --duration: must be a number of seconds >= 0"
+        );
+    }
+    let cancel = cancel_flag()?;
+    let opts = trn_sim::SimOptions {
+        sources: trn_sim::SceneSources {
+            ortho: a.ortho,
+            ortho_bands: a.ortho_bands,
+            dems: a.dems,
+            dem_vertical: vertical(a.dem_vertical),
+            geoid: a.geoid,
+        },
+        scenario: a.scenario,
+        out: a.out,
+        max_duration_s: a.duration,
+    };
+    let report = trn_sim::simulate(&opts, &cancel)?;
+    println!("{}", serde_json::to_string_pretty(&report)?);
+    Ok(())
+}
+
+fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
+    if let Some(r) = a.rate {
+        anyhow::ensure!(r.is_finite() && r > 0.0, "invalid option --rate: must be images per second > 0");
+    }
+    anyhow::ensure!(
+        a.alpha_max > 0.0 && a.alpha_max < 90.0,
+        "invalid option --alpha-max: must be an angle in (0, 90) degrees"
+    );
+    anyhow::ensure!(a.min_inliers >= 4, "invalid option --min-inliers: must be at least 4");
+    anyhow::ensure!(a.max_landmarks >= 4, "invalid option --max-landmarks: must be at least 4");
+    let flight = trn_flight::Flight::open(&a.flight)?;
+    let source = trn_navigator::DbSource::open(&a.db)?;
+    let mut params = trn_navigator::NavParams { use_gyro: !a.no_gyro, ..Default::default() };
+    params.alpha_max_deg = a.alpha_max;
+    params.min_inliers = a.min_inliers;
+    params.max_height_jump_m = a.max_height_jump;
+    params.max_landmarks = a.max_landmarks;
+    let opts = trn_navigator::RunOptions { rate_hz: a.rate, params };
+    let bar = indicatif::ProgressBar::new(flight.frames.len() as u64);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "navigate [{bar:40}] {pos}/{len} frames, {elapsed_precise} (eta {eta})",
+        )
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+    );
+    let (records, matches, report) =
+        trn_navigator::run_flight(&flight, &source, &opts, |i| bar.set_position(i as u64))?;
+    bar.finish_and_clear();
+    trn_flight::write_nav_records(&a.out, &records)?;
+    let matches_path = a.out.with_file_name("matches.csv");
+    trn_flight::write_match_records(&matches_path, &matches)?;
+    tracing::info!(
+        "{} of {} frames processed, {} fixes, median {:.1} ms per frame; wrote {} and {}",
+        report.processed,
+        report.frames,
+        report.fixes,
+        report.median_ms,
+        a.out.display(),
+        matches_path.display()
+    );
+    println!("{}", serde_json::to_string_pretty(&report)?);
+    Ok(())
+}
+
 fn run_synth(a: SynthArgs) -> anyhow::Result<()> {
     use trn_builder::synth::{write_dem, write_ortho, SynthGrid};
     let ortho = SynthGrid {
@@ -217,7 +404,44 @@ fn run_synth(a: SynthArgs) -> anyhow::Result<()> {
         width: n,
         height: n,
     };
-    write_dem(&a.dem, &dem, a.seed + 100, 1500.0, 60.0)?;
+    anyhow::ensure!(
+        a.relief.is_finite() && a.relief >= 0.0,
+        "invalid option --relief: must be a number of metres >= 0"
+    );
+    write_dem(&a.dem, &dem, a.seed + 100, 1500.0, a.relief)?;
     println!("wrote {} and {}", a.ortho.display(), a.dem.display());
+    Ok(())
+}
+
+fn run_evaluate(a: EvaluateArgs) -> anyhow::Result<()> {
+    let n = a.poses.len();
+    if !a.labels.is_empty() && a.labels.len() != n {
+        anyhow::bail!("--label given {} times for {n} --poses: give none or one per --poses", a.labels.len());
+    }
+    if !a.matches.is_empty() && a.matches.len() != n {
+        anyhow::bail!(
+            "--matches given {} times for {n} --poses: give none or one per --poses",
+            a.matches.len()
+        );
+    }
+    let runs: Vec<trn_eval::RunInput> = a
+        .poses
+        .into_iter()
+        .enumerate()
+        .map(|(i, p)| {
+            let mut r = trn_eval::RunInput::new(p);
+            if let Some(l) = a.labels.get(i) {
+                r.label = l.clone();
+            }
+            r.matches = a.matches.get(i).cloned();
+            r
+        })
+        .collect();
+    let opts = trn_eval::Options { band_m: a.band_m, plot_dir: a.plot_dir };
+    let report = trn_eval::evaluate(&a.flight, &runs, &opts)?;
+    print!("{report}");
+    if let Some(path) = &a.json {
+        trn_eval::write_json(path, &report)?;
+    }
     Ok(())
 }

@@ -348,6 +348,23 @@ fn select_all(
 }
 
 fn open_dems(opts: &BuildOptions) -> Result<Vec<DemSpec>> {
+    open_dem_specs(&opts.dems, opts.dem_vertical, opts.geoid.as_deref())
+}
+
+/// Opens and checks DEMs and decides each one's conversion to ellipsoidal
+/// heights (from the file's CRS, or `vertical` with `geoid`), as `trn build`
+/// does; the simulator uses the same path so both see the same terrain.
+pub fn open_dem_specs(
+    dems: &[PathBuf],
+    dem_vertical: Option<DemVertical>,
+    geoid: Option<&Path>,
+) -> Result<Vec<DemSpec>> {
+    if dem_vertical == Some(DemVertical::Geoid) && geoid.is_none() {
+        return Err(BuildError::Option {
+            option: "--dem-vertical",
+            reason: "geoid needs --geoid GRID".into(),
+        });
+    }
     let mut geoids: HashMap<PathBuf, Arc<trn_geodesy::GeoidGrid>> = HashMap::new();
     let mut load = |p: &Path| -> Result<Arc<trn_geodesy::GeoidGrid>> {
         if let Some(g) = geoids.get(p) {
@@ -358,7 +375,7 @@ fn open_dems(opts: &BuildOptions) -> Result<Vec<DemSpec>> {
         Ok(g)
     };
     let mut out = Vec::new();
-    for p in &opts.dems {
+    for p in dems {
         let (ds, info) = source::inspect(p)?;
         source::check_not_all_nodata(&ds, p)?;
         let band = ds
@@ -372,21 +389,21 @@ fn open_dems(opts: &BuildOptions) -> Result<Vec<DemSpec>> {
         };
         let declared = source::declared_vertical(&info.srs_wkt)
             .or_else(|| source::is_ellipsoidal_3d(&info.srs_wkt).then_some(VerticalDatum::Ellipsoid));
-        let datum = match (opts.dem_vertical, &declared) {
+        let datum = match (dem_vertical, &declared) {
             (Some(DemVertical::Egm96), _) => VerticalDatum::Egm96,
             (Some(DemVertical::Ellipsoid), _) => VerticalDatum::Ellipsoid,
             (Some(DemVertical::Geoid), _) => VerticalDatum::Geoid { name: "--geoid".into() },
             (None, Some(d)) => d.clone(),
             (None, None) => return Err(BuildError::UnknownVerticalDatum { path: p.clone() }),
         };
-        if let (Some(flag), Some(d)) = (opts.dem_vertical, &declared) {
+        if let (Some(flag), Some(d)) = (dem_vertical, &declared) {
             warn!("{}: file declares {d:?}, --dem-vertical {flag:?} overrides it", p.display());
         }
-        let source_of_datum = if opts.dem_vertical.is_some() { "--dem-vertical" } else { "the file's CRS" };
+        let source_of_datum = if dem_vertical.is_some() { "--dem-vertical" } else { "the file's CRS" };
         let geoid = match &datum {
             VerticalDatum::Ellipsoid => None,
-            VerticalDatum::Egm96 => Some(load(opts.geoid.as_deref().unwrap_or(Path::new(EGM96_GRID)))?),
-            VerticalDatum::Geoid { name } => match &opts.geoid {
+            VerticalDatum::Egm96 => Some(load(geoid.unwrap_or(Path::new(EGM96_GRID)))?),
+            VerticalDatum::Geoid { name } => match geoid {
                 Some(g) => Some(load(g)?),
                 None => return Err(BuildError::GeoidGridNeeded { path: p.clone(), datum: name.clone() }),
             },

@@ -73,18 +73,7 @@ impl Heights for DemSampler {
     /// (in the order given) with valid data there, so tiles of a DEM mosaic
     /// join; `None` when some point has no DEM.
     fn heights_ellipsoidal(&self, lonlat: &[(f64, f64)]) -> Option<Vec<f64>> {
-        let mut out: Vec<Option<f64>> = vec![None; lonlat.len()];
-        for (spec, ds, ct) in &self.dems {
-            let missing: Vec<usize> = (0..lonlat.len()).filter(|&i| out[i].is_none()).collect();
-            if missing.is_empty() {
-                break;
-            }
-            let pts: Vec<(f64, f64)> = missing.iter().map(|&i| lonlat[i]).collect();
-            for (k, h) in sample(spec, ds, ct, &pts).into_iter().enumerate() {
-                out[missing[k]] = h;
-            }
-        }
-        out.into_iter().collect()
+        self.heights_each(lonlat).into_iter().collect()
     }
 }
 
@@ -98,6 +87,25 @@ impl Heights for DemPatch<'_> {
 /// Per-thread DEM reader (GDAL handles are not shared across threads).
 pub struct DemSampler {
     dems: Vec<(DemSpec, Dataset, CoordTransform)>,
+}
+
+impl DemSampler {
+    /// Ellipsoidal heights (m) at (lon, lat) points, each from the first DEM
+    /// with valid data there; `None` per point without DEM.
+    pub fn heights_each(&self, lonlat: &[(f64, f64)]) -> Vec<Option<f64>> {
+        let mut out: Vec<Option<f64>> = vec![None; lonlat.len()];
+        for (spec, ds, ct) in &self.dems {
+            let missing: Vec<usize> = (0..lonlat.len()).filter(|&i| out[i].is_none()).collect();
+            if missing.is_empty() {
+                break;
+            }
+            let pts: Vec<(f64, f64)> = missing.iter().map(|&i| lonlat[i]).collect();
+            for (k, h) in sample(spec, ds, ct, &pts).into_iter().enumerate() {
+                out[missing[k]] = h;
+            }
+        }
+        out
+    }
 }
 
 impl DemSampler {

@@ -1,0 +1,464 @@
+//! Pure scoring: per-frame pose errors, summary statistics, altitude bands
+//! and the per-segment comparison of several runs. No I/O, no plotting.
+
+use std::collections::BTreeMap;
+
+use nalgebra::{UnitQuaternion, Vector3};
+use serde::Serialize;
+use trn_flight::{FixStatus, NavRecord, TimedPose};
+use trn_geodesy::LocalFrame;
+
+/// A `poses.csv` row belongs to a frame when their times differ by at most this.
+pub const TIME_TOL_S: f64 = 1e-6;
+
+/// Error of an estimated pose against the true one.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct PoseError {
+    /// ECEF distance (m).
+    pub pos_m: f64,
+    /// Estimate - truth, east/north/up (m) in the truth's local frame.
+    pub enu_m: [f64; 3],
+    /// Angle of `q_true^-1 q_est` (deg).
+    pub att_deg: f64,
+    /// Angle between the true and estimated boresights (camera +z) (deg).
+    pub boresight_deg: f64,
+}
+
+/// Rotation angle (deg) of `q_a^-1 q_b`, accurate near zero (atan2, not acos).
+pub fn rotation_angle_deg(q_a: &UnitQuaternion<f64>, q_b: &UnitQuaternion<f64>) -> f64 {
+    let d = q_a.inverse() * q_b;
+    (2.0 * d.imag().norm().atan2(d.w.abs())).to_degrees()
+}
+
+fn vector_angle_deg(a: &Vector3<f64>, b: &Vector3<f64>) -> f64 {
+    a.cross(b).norm().atan2(a.dot(b)).to_degrees()
+}
+
+pub fn pose_error(truth: &TimedPose, est: &TimedPose) -> PoseError {
+    let (pt, pe) = (truth.position.to_ecef(), est.position.to_ecef());
+    let enu = LocalFrame::at(truth.position).vector_to_enu(&(pe.0 - pt.0));
+    let z = Vector3::z();
+    PoseError {
+        pos_m: pt.distance_m(&pe),
+        enu_m: [enu.x, enu.y, enu.z],
+        att_deg: rotation_angle_deg(&truth.q_ecef_cam, &est.q_ecef_cam),
+        boresight_deg: vector_angle_deg(&(truth.q_ecef_cam * z), &(est.q_ecef_cam * z)),
+    }
+}
+
+/// One frame of `frames.csv` with the navigator's row at its time, if any.
+#[derive(Clone, Debug, Serialize)]
+pub struct FrameEval {
+    pub t: f64,
+    /// True height above the ellipsoid (m).
+    pub truth_h_m: f64,
+    /// `lost` when the frame has no row.
+    pub status: FixStatus,
+    /// No `poses.csv` row at this frame's time.
+    pub missing: bool,
+    pub inliers: Option<u32>,
+    pub matches: Option<u32>,
+    pub ms: Option<f64>,
+    /// For `fix` and `propagated` frames.
+    pub error: Option<PoseError>,
+    #[serde(skip)]
+    pub truth: TimedPose,
+    #[serde(skip)]
+    pub estimate: Option<TimedPose>,
+}
+
+impl FrameEval {
+    pub fn has_pose(&self) -> bool {
+        self.error.is_some()
+    }
+}
+
+/// Pairs frames (`truths[i]` is the true pose at frame `i`, frames in time
+/// order) with rows within [`TIME_TOL_S`]. Returns the per-frame results and
+/// the number of rows at no frame's time.
+pub fn match_frames(truths: &[TimedPose], rows: &[NavRecord]) -> (Vec<FrameEval>, usize) {
+    let mut out: Vec<FrameEval> = truths
+        .iter()
+        .map(|tp| FrameEval {
+            t: tp.t,
+            truth_h_m: tp.position.h_m,
+            status: FixStatus::Lost,
+            missing: true,
+            inliers: None,
+            matches: None,
+            ms: None,
+            error: None,
+            truth: *tp,
+            estimate: None,
+        })
+        .collect();
+    let mut ignored = 0;
+    for r in rows {
+        let t = r.pose.t;
+        let i = truths.partition_point(|f| f.t < t - TIME_TOL_S);
+        let Some(f) = out.get_mut(i).filter(|f| (f.t - t).abs() <= TIME_TOL_S && f.missing) else {
+            ignored += 1;
+            continue;
+        };
+        f.missing = false;
+        f.status = r.status;
+        f.inliers = Some(r.inliers);
+        f.matches = Some(r.matches);
+        f.ms = Some(r.ms);
+        if r.status != FixStatus::Lost {
+            f.error = Some(pose_error(&f.truth, &r.pose));
+            f.estimate = Some(r.pose);
+        }
+    }
+    (out, ignored)
+}
+
+/// Summary of a sample. `p95` is the nearest-rank percentile (the smallest
+/// value with at least 95% of the sample at or below it); `median` averages
+/// the two middle values of an even sample.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct Stats {
+    pub n: usize,
+    pub mean: f64,
+    pub median: f64,
+    pub p95: f64,
+    pub max: f64,
+    pub rms: f64,
+}
+
+/// `None` for an empty sample.
+pub fn stats(values: &[f64]) -> Option<Stats> {
+    if values.is_empty() {
+        return None;
+    }
+    let mut v = values.to_vec();
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    let median = if n % 2 == 1 { v[n / 2] } else { 0.5 * (v[n / 2 - 1] + v[n / 2]) };
+    let rank = ((0.95 * n as f64).ceil() as usize).clamp(1, n);
+    Some(Stats {
+        n,
+        mean: v.iter().sum::<f64>() / n as f64,
+        median,
+        p95: v[rank - 1],
+        max: v[n - 1],
+        rms: (v.iter().map(|x| x * x).sum::<f64>() / n as f64).sqrt(),
+    })
+}
+
+/// Error statistics over a set of frames with a pose.
+#[derive(Clone, Debug, Serialize)]
+pub struct ErrorStats {
+    pub n: usize,
+    /// 3D position error (m).
+    pub pos_m: Stats,
+    /// |east|, |north|, |up| (m).
+    pub east_abs_m: Stats,
+    pub north_abs_m: Stats,
+    pub up_abs_m: Stats,
+    /// Mean signed east/north/up error (m): the bias.
+    pub enu_mean_m: [f64; 3],
+    pub att_deg: Stats,
+    pub boresight_deg: Stats,
+}
+
+pub fn error_stats<'a>(errors: impl IntoIterator<Item = &'a PoseError>) -> Option<ErrorStats> {
+    let e: Vec<&PoseError> = errors.into_iter().collect();
+    let col = |f: &dyn Fn(&PoseError) -> f64| stats(&e.iter().map(|x| f(x)).collect::<Vec<_>>());
+    let n = e.len() as f64;
+    let mean = |k: usize| e.iter().map(|x| x.enu_m[k]).sum::<f64>() / n;
+    Some(ErrorStats {
+        n: e.len(),
+        pos_m: col(&|x| x.pos_m)?,
+        east_abs_m: col(&|x| x.enu_m[0].abs())?,
+        north_abs_m: col(&|x| x.enu_m[1].abs())?,
+        up_abs_m: col(&|x| x.enu_m[2].abs())?,
+        enu_mean_m: [mean(0), mean(1), mean(2)],
+        att_deg: col(&|x| x.att_deg)?,
+        boresight_deg: col(&|x| x.boresight_deg)?,
+    })
+}
+
+/// Frames by status. `lost` includes the `missing` frames (no row).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct StatusCounts {
+    pub frames: usize,
+    pub fix: usize,
+    pub propagated: usize,
+    pub lost: usize,
+    pub missing: usize,
+    pub share_fix: f64,
+    pub share_propagated: f64,
+    pub share_lost: f64,
+}
+
+pub fn status_counts<'a>(frames: impl IntoIterator<Item = &'a FrameEval>) -> StatusCounts {
+    let mut c = StatusCounts::default();
+    for f in frames {
+        c.frames += 1;
+        match f.status {
+            FixStatus::Fix => c.fix += 1,
+            FixStatus::Propagated => c.propagated += 1,
+            FixStatus::Lost => c.lost += 1,
+        }
+        c.missing += f.missing as usize;
+    }
+    let share = |k: usize| if c.frames == 0 { 0.0 } else { k as f64 / c.frames as f64 };
+    (c.share_fix, c.share_propagated, c.share_lost) = (share(c.fix), share(c.propagated), share(c.lost));
+    c
+}
+
+/// Errors over `fix` frames.
+pub fn fix_errors(frames: &[FrameEval]) -> Option<ErrorStats> {
+    error_stats(frames.iter().filter(|f| f.status == FixStatus::Fix).filter_map(|f| f.error.as_ref()))
+}
+
+/// Errors over frames with a pose (`fix` and `propagated`).
+pub fn pose_errors(frames: &[FrameEval]) -> Option<ErrorStats> {
+    error_stats(frames.iter().filter_map(|f| f.error.as_ref()))
+}
+
+/// Index of the height band `[k band_m, (k + 1) band_m)` holding `h_m`.
+pub fn band_index(h_m: f64, band_m: f64) -> i64 {
+    (h_m / band_m).floor() as i64
+}
+
+fn km(m: f64) -> String {
+    let s = format!("{:.3}", m / 1000.0);
+    s.trim_end_matches('0').trim_end_matches('.').to_string()
+}
+
+/// "25-30 km" for band 5 of 5000 m.
+pub fn band_label(index: i64, band_m: f64) -> String {
+    format!("{}-{} km", km(index as f64 * band_m), km((index + 1) as f64 * band_m))
+}
+
+/// One truth-height band of a run.
+#[derive(Clone, Debug, Serialize)]
+pub struct Band {
+    pub label: String,
+    pub lo_m: f64,
+    pub hi_m: f64,
+    pub status: StatusCounts,
+    pub fix_errors: Option<ErrorStats>,
+}
+
+fn group_by_band<'a>(
+    frames: impl IntoIterator<Item = &'a FrameEval>,
+    band_m: f64,
+) -> BTreeMap<i64, Vec<&'a FrameEval>> {
+    let mut m: BTreeMap<i64, Vec<&FrameEval>> = BTreeMap::new();
+    for f in frames {
+        m.entry(band_index(f.truth_h_m, band_m)).or_default().push(f);
+    }
+    m
+}
+
+/// Bands holding at least one frame, highest first (the order of a descent).
+pub fn bands(frames: &[FrameEval], band_m: f64) -> Vec<Band> {
+    group_by_band(frames, band_m)
+        .into_iter()
+        .rev()
+        .map(|(k, fs)| Band {
+            label: band_label(k, band_m),
+            lo_m: k as f64 * band_m,
+            hi_m: (k + 1) as f64 * band_m,
+            status: status_counts(fs.iter().copied()),
+            fix_errors: error_stats(
+                fs.iter().filter(|f| f.status == FixStatus::Fix).filter_map(|f| f.error.as_ref()),
+            ),
+        })
+        .collect()
+}
+
+/// Rows of one run in one altitude segment.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct SegmentCell {
+    pub rows: usize,
+    pub fix: usize,
+    pub share_fix: f64,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct SegmentRow {
+    pub label: String,
+    pub lo_m: f64,
+    pub hi_m: f64,
+    /// One per run, in the order of [`Comparison::runs`]; `None`: no rows there.
+    pub cells: Vec<Option<SegmentCell>>,
+}
+
+/// Share of each run's rows with status `fix`, per altitude segment. Only
+/// rows count (frames a run did not process are not held against it), so
+/// runs at different image rates compare fairly.
+#[derive(Clone, Debug, Serialize)]
+pub struct Comparison {
+    pub runs: Vec<String>,
+    pub segments: Vec<SegmentRow>,
+}
+
+pub fn compare(runs: &[(&str, &[FrameEval])], band_m: f64) -> Comparison {
+    let per_run: Vec<BTreeMap<i64, Vec<&FrameEval>>> =
+        runs.iter().map(|(_, fs)| group_by_band(fs.iter().filter(|f| !f.missing), band_m)).collect();
+    let mut keys: Vec<i64> = per_run.iter().flat_map(|m| m.keys().copied()).collect();
+    keys.sort_unstable();
+    keys.dedup();
+    let segments = keys
+        .into_iter()
+        .rev()
+        .map(|k| SegmentRow {
+            label: band_label(k, band_m),
+            lo_m: k as f64 * band_m,
+            hi_m: (k + 1) as f64 * band_m,
+            cells: per_run
+                .iter()
+                .map(|m| {
+                    m.get(&k).map(|fs| {
+                        let fix = fs.iter().filter(|f| f.status == FixStatus::Fix).count();
+                        SegmentCell { rows: fs.len(), fix, share_fix: fix as f64 / fs.len() as f64 }
+                    })
+                })
+                .collect(),
+        })
+        .collect();
+    Comparison { runs: runs.iter().map(|(l, _)| l.to_string()).collect(), segments }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use trn_geodesy::{Enu, Geodetic};
+
+    fn truth(t: f64, h: f64) -> TimedPose {
+        TimedPose {
+            t,
+            position: Geodetic::new(35.0, -106.0 + t * 1e-3, h),
+            q_ecef_cam: UnitQuaternion::from_euler_angles(0.3, -0.2, 1.0 + t * 0.01),
+        }
+    }
+
+    fn row(pose: TimedPose, status: FixStatus) -> NavRecord {
+        NavRecord { pose, status, inliers: 10, matches: 12, ms: 5.0 }
+    }
+
+    #[test]
+    fn stats_match_hand_computed_values() {
+        let s = stats(&[4.0, 1.0, 3.0, 2.0]).unwrap();
+        assert_eq!(s.n, 4);
+        assert!((s.mean - 2.5).abs() < 1e-12);
+        assert!((s.median - 2.5).abs() < 1e-12);
+        assert_eq!(s.max, 4.0);
+        // ceil(0.95 * 4) = 4th smallest
+        assert_eq!(s.p95, 4.0);
+        assert!((s.rms - (30.0f64 / 4.0).sqrt()).abs() < 1e-12);
+        // 1..=20: rank ceil(19) = 19th value; odd n median is the middle value
+        let v: Vec<f64> = (1..=20).map(f64::from).collect();
+        assert_eq!(stats(&v).unwrap().p95, 19.0);
+        assert_eq!(stats(&[5.0, 1.0, 9.0]).unwrap().median, 5.0);
+        assert_eq!(stats(&[7.0]).unwrap().p95, 7.0);
+        assert!(stats(&[]).is_none());
+    }
+
+    #[test]
+    fn attitude_error_of_a_known_rotation() {
+        let t = truth(0.0, 25_000.0);
+        let delta = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), 0.5f64.to_radians());
+        let est = TimedPose { q_ecef_cam: t.q_ecef_cam * delta, ..t };
+        let e = pose_error(&t, &est);
+        assert!((e.att_deg - 0.5).abs() < 1e-9, "{}", e.att_deg);
+        // A rotation about the camera x axis tilts the boresight by the same angle.
+        assert!((e.boresight_deg - 0.5).abs() < 1e-9, "{}", e.boresight_deg);
+        // About the boresight itself: attitude error, no pointing error.
+        let roll = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 2f64.to_radians());
+        let e = pose_error(&t, &TimedPose { q_ecef_cam: t.q_ecef_cam * roll, ..t });
+        assert!((e.att_deg - 2.0).abs() < 1e-9 && e.boresight_deg < 1e-9);
+        assert_eq!(pose_error(&t, &t).att_deg, 0.0);
+        assert!(rotation_angle_deg(&t.q_ecef_cam, &t.q_ecef_cam) < 1e-12);
+    }
+
+    #[test]
+    fn position_error_in_the_truth_local_frame() {
+        let t = truth(1.0, 25_000.0);
+        let f = LocalFrame::at(t.position);
+        let p = f.to_ecef(Enu::new(30.0, -40.0, 12.0)).to_geodetic();
+        let e = pose_error(&t, &TimedPose { position: p, ..t });
+        // sqrt(30^2 + 40^2 + 12^2)
+        assert!((e.pos_m - 2644f64.sqrt()).abs() < 1e-6, "{}", e.pos_m);
+        for (a, b) in e.enu_m.iter().zip([30.0, -40.0, 12.0]) {
+            assert!((a - b).abs() < 1e-6, "{:?}", e.enu_m);
+        }
+    }
+
+    #[test]
+    fn missing_frames_count_as_lost_and_stray_rows_are_ignored() {
+        let truths: Vec<TimedPose> = (0..6).map(|i| truth(i as f64 * 0.5, 25_000.0)).collect();
+        let mut rows: Vec<NavRecord> = truths.iter().map(|p| row(*p, FixStatus::Fix)).collect();
+        rows[4].status = FixStatus::Propagated;
+        rows.remove(2);
+        rows.remove(0);
+        // Half a frame period off: matches no frame.
+        let stray = NavRecord { pose: truth(1.25, 25_000.0), ..rows[0] };
+        rows.insert(1, stray);
+        let (frames, ignored) = match_frames(&truths, &rows);
+        assert_eq!(ignored, 1);
+        assert!(frames[0].missing && frames[2].missing && !frames[1].missing);
+        let c = status_counts(&frames);
+        assert_eq!((c.frames, c.fix, c.propagated, c.lost, c.missing), (6, 3, 1, 2, 2));
+        assert!((c.share_fix - 0.5).abs() < 1e-12 && (c.share_lost - 2.0 / 6.0).abs() < 1e-12);
+        assert_eq!(fix_errors(&frames).unwrap().n, 3);
+        assert_eq!(pose_errors(&frames).unwrap().n, 4);
+        // A row a few hundred ns off still matches.
+        let near = NavRecord { pose: TimedPose { t: 0.5 + 4e-7, ..truths[1] }, ..rows[0] };
+        let (frames, ignored) = match_frames(&truths, &[near]);
+        assert_eq!(ignored, 0);
+        assert!(!frames[1].missing);
+    }
+
+    #[test]
+    fn bands_group_by_truth_height_highest_first() {
+        assert_eq!(band_index(24_999.0, 5000.0), 4);
+        assert_eq!(band_index(25_000.0, 5000.0), 5);
+        assert_eq!(band_label(5, 5000.0), "25-30 km");
+        assert_eq!(band_label(3, 500.0), "1.5-2 km");
+        let hs = [26_000.0, 25_500.0, 24_800.0, 24_100.0, 19_000.0];
+        let truths: Vec<TimedPose> = hs.iter().enumerate().map(|(i, h)| truth(i as f64, *h)).collect();
+        let mut rows: Vec<NavRecord> = truths.iter().map(|p| row(*p, FixStatus::Fix)).collect();
+        rows[2].status = FixStatus::Lost;
+        rows.remove(3);
+        let (frames, _) = match_frames(&truths, &rows);
+        let b = bands(&frames, 5000.0);
+        let labels: Vec<&str> = b.iter().map(|b| b.label.as_str()).collect();
+        assert_eq!(labels, ["25-30 km", "20-25 km", "15-20 km"]);
+        assert_eq!((b[0].status.frames, b[0].status.fix), (2, 2));
+        assert_eq!(
+            (b[1].status.frames, b[1].status.fix, b[1].status.lost, b[1].status.missing),
+            (2, 0, 2, 1)
+        );
+        assert!(b[1].fix_errors.is_none());
+        // The comparison counts rows only: the missing frame is not in it.
+        let c = compare(&[("a", &frames)], 5000.0);
+        let cell = c.segments[1].cells[0].unwrap();
+        assert_eq!((cell.rows, cell.fix), (1, 0));
+        assert_eq!(c.segments[0].cells[0].unwrap().share_fix, 1.0);
+    }
+
+    #[test]
+    fn comparison_aligns_segments_across_runs() {
+        let hs = [26_500.0, 25_500.0, 24_500.0, 23_500.0];
+        let truths: Vec<TimedPose> = hs.iter().enumerate().map(|(i, h)| truth(i as f64, *h)).collect();
+        let all: Vec<NavRecord> = truths.iter().map(|p| row(*p, FixStatus::Fix)).collect();
+        let (fa, _) = match_frames(&truths, &all);
+        // Run b: every other frame, the low one propagated.
+        let mut half = vec![all[0], all[2]];
+        half[1].status = FixStatus::Propagated;
+        let (fb, _) = match_frames(&truths, &half);
+        let c = compare(&[("a", &fa), ("b", &fb)], 1000.0);
+        assert_eq!(c.runs, ["a", "b"]);
+        assert_eq!(c.segments.len(), 4);
+        assert_eq!(c.segments[0].label, "26-27 km");
+        assert_eq!(c.segments[0].cells[1].unwrap().share_fix, 1.0);
+        assert!(c.segments[1].cells[1].is_none());
+        assert_eq!(c.segments[2].cells[1].unwrap().share_fix, 0.0);
+        assert_eq!(c.segments[3].cells[0].unwrap().rows, 1);
+    }
+}

@@ -1,0 +1,117 @@
+//! Terrain relative navigation, frame by frame.
+//!
+//! The main type is [`Navigator`]: for each image it propagates the
+//! attitude with the gyro ([`propagate`]), predicts which landmarks are in
+//! view from the pose guess ([`footprint`]: IBAL's corner projection with
+//! horizon handling and angle filter), queries them from a
+//! [`LandmarkSource`], warps them into the image ([`predict`]), correlates
+//! them (NCC), and solves the pose with P3P RANSAC and PnP refinement
+//! (`trn-vision`), then accepts or rejects the fix. [`run_flight`] drives it
+//! over a flight folder and writes `poses.csv` and `matches.csv`.
+
+// `!(x > y)` is how these crates reject NaN along with out-of-range values.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
+pub mod footprint;
+pub mod image;
+pub mod nav;
+pub mod predict;
+pub mod propagate;
+pub mod source;
+
+use std::path::{Path, PathBuf};
+
+use trn_flight::{FixStatus, Flight, MatchRecord, NavRecord};
+
+pub use nav::{NavParams, Navigator};
+pub use source::{DbSource, LandmarkSource, SourceError};
+
+/// Errors of a navigation run; each names the file at fault.
+#[derive(Debug, thiserror::Error)]
+pub enum NavError {
+    #[error(transparent)]
+    Flight(#[from] trn_flight::FlightError),
+    #[error("{}: {reason}", path.display())]
+    Image { path: PathBuf, reason: String },
+    #[error("{0}")]
+    Source(#[from] SourceError),
+}
+
+/// What `trn navigate` is asked to do.
+#[derive(Clone, Debug)]
+pub struct RunOptions {
+    /// Images per second taken from the flight (`None`: every image).
+    pub rate_hz: Option<f64>,
+    pub params: NavParams,
+}
+
+/// Summary of a run.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct RunReport {
+    pub frames: usize,
+    pub processed: usize,
+    pub fixes: usize,
+    pub median_ms: f64,
+}
+
+/// Reads a flight image as grey levels (RGB by Rec. 601 luma).
+pub fn load_grey(path: &Path) -> Result<image::GreyImage, NavError> {
+    let img =
+        ::image::open(path).map_err(|e| NavError::Image { path: path.into(), reason: e.to_string() })?;
+    let g = img.to_luma32f();
+    let (w, h) = g.dimensions();
+    Ok(image::GreyImage {
+        width: w as usize,
+        height: h as usize,
+        data: g.into_raw().iter().map(|v| v * 255.0).collect(),
+    })
+}
+
+/// Navigates a whole flight; returns the rows of `poses.csv` and `matches.csv`.
+pub fn run_flight(
+    flight: &Flight,
+    source: &dyn LandmarkSource,
+    opts: &RunOptions,
+    mut progress: impl FnMut(usize),
+) -> Result<(Vec<NavRecord>, Vec<MatchRecord>, RunReport), NavError> {
+    let mut nav = Navigator::new(source, &flight.camera, &flight.imu, &flight.init, opts.params.clone())?;
+    let mut records = Vec::new();
+    let mut matches = Vec::new();
+    let mut next_due = f64::NEG_INFINITY;
+    for (i, frame) in flight.frames.iter().enumerate() {
+        progress(i);
+        // Rate downsampling, except right after a rejected fix.
+        if frame.t + 1e-6 < next_due {
+            continue;
+        }
+        let path = flight.image_path(frame);
+        let img = load_grey(&path)?;
+        if img.width != flight.camera.model.width as usize
+            || img.height != flight.camera.model.height as usize
+        {
+            return Err(NavError::Image {
+                path,
+                reason: format!(
+                    "{}x{} pixels, but camera.json says {}x{}",
+                    img.width, img.height, flight.camera.model.width, flight.camera.model.height
+                ),
+            });
+        }
+        let r = nav.process(frame.t, img);
+        next_due = match (r.record.status, opts.rate_hz) {
+            (FixStatus::Fix, Some(rate)) => frame.t + 1.0 / rate,
+            _ => f64::NEG_INFINITY,
+        };
+        records.push(r.record);
+        matches.extend(r.matches);
+    }
+    let mut ms: Vec<f64> = records.iter().map(|r| r.ms).collect();
+    ms.sort_by(f64::total_cmp);
+    let report = RunReport {
+        frames: flight.frames.len(),
+        processed: records.len(),
+        fixes: records.iter().filter(|r| r.status == FixStatus::Fix).count(),
+        median_ms: ms.get(ms.len() / 2).copied().unwrap_or(0.0),
+    };
+    Ok((records, matches, report))
+}

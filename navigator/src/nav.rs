@@ -1,0 +1,489 @@
+//! The per-frame pipeline: pose guess (gyro), footprint, landmark query,
+//! prediction, correlation, RANSAC + PnP, acceptance.
+
+use std::time::Instant;
+
+use nalgebra::{UnitQuaternion, Vector3};
+use tracing::debug;
+use trn_camera::{CameraConfig, CameraModel, CameraPose, Pixel};
+use trn_flight::{FixStatus, ImuSample, MatchRecord, NavRecord, TimedPose};
+use trn_landmark::Template;
+use trn_vision::ncc::{self, ImageView, NccParams};
+use trn_vision::pnp::{refine_pose, RefineOptions};
+use trn_vision::ransac::{ransac_p3p, RansacParams};
+
+use crate::footprint::{footprint, FootprintParams};
+use crate::image::{GreyImage, Pyramid, UndistortLut};
+use crate::predict::{predict, Predicted};
+use crate::propagate::propagate;
+use crate::source::LandmarkSource;
+
+/// Navigator settings (the `trn navigate` options).
+#[derive(Clone, Debug)]
+pub struct NavParams {
+    /// Carry the attitude between images with the gyro.
+    pub use_gyro: bool,
+    /// Largest angle between a line of sight and the surface normal (deg).
+    pub alpha_max_deg: f64,
+    /// Corner walking step of the horizon handling (px).
+    pub horizon_step_px: f64,
+    /// Fewer inliers reject the fix.
+    pub min_inliers: usize,
+    /// A height change between accepted fixes above this rejects the fix (m).
+    pub max_height_jump_m: f64,
+    /// Landmarks correlated per frame (spread over the image).
+    pub max_landmarks: usize,
+    /// Image cells (across x down) the landmarks are spread over.
+    pub grid: (usize, usize),
+    /// RANSAC inlier threshold at full resolution (px).
+    pub ransac_threshold_px: f64,
+    pub ncc: NccParams,
+    /// Largest correlation search radius at one pyramid level (px); wider
+    /// searches go to coarser levels first.
+    pub max_radius_px: usize,
+    /// Position and attitude uncertainty of the initial guess (1 sigma).
+    pub init_sigma_m: f64,
+    pub init_sigma_deg: f64,
+    /// Gyro attitude drift assumed between fixes (deg/s, 1 sigma) and the
+    /// velocity uncertainty (m/s).
+    pub gyro_drift_deg_s: f64,
+    pub velocity_sigma_m_s: f64,
+    /// Attitude prior sigma in the refinement when the gyro carries the attitude (deg).
+    pub attitude_prior_deg: f64,
+}
+
+impl Default for NavParams {
+    fn default() -> Self {
+        Self {
+            use_gyro: true,
+            alpha_max_deg: 75.0,
+            horizon_step_px: 10.0,
+            min_inliers: 8,
+            max_height_jump_m: 450.0,
+            max_landmarks: 80,
+            grid: (8, 6),
+            ransac_threshold_px: 2.0,
+            ncc: NccParams { min_peak: 0.5, max_second_ratio: 0.92, min_template_std: 2.0 },
+            max_radius_px: 16,
+            init_sigma_m: 300.0,
+            init_sigma_deg: 2.0,
+            gyro_drift_deg_s: 0.01,
+            velocity_sigma_m_s: 20.0,
+            attitude_prior_deg: 0.05,
+        }
+    }
+}
+
+/// Result of one processed frame.
+pub struct FrameResult {
+    pub record: NavRecord,
+    pub matches: Vec<MatchRecord>,
+}
+
+/// Terrain relative navigation over one flight.
+pub struct Navigator<'a> {
+    source: &'a dyn LandmarkSource,
+    camera: CameraModel,
+    q_imu_cam: UnitQuaternion<f64>,
+    imu: &'a [ImuSample],
+    params: NavParams,
+    lut: UndistortLut,
+    /// (level, GSD) of the database.
+    levels: Vec<(u8, f64)>,
+    /// Template side (px) in the database.
+    template_px: f64,
+    /// Current estimate and when.
+    t: f64,
+    pose: CameraPose,
+    sigma_m: f64,
+    sigma_rad: f64,
+    last_fix: Option<(f64, CameraPose)>,
+    velocity: Vector3<f64>,
+    terrain_h_m: f64,
+}
+
+const PYRAMID_LEVELS: usize = 4;
+/// Fewest landmarks in view for a coarse search level.
+const MIN_COARSE_LANDMARKS: usize = 20;
+/// Smallest template size at a coarse search level (level pixels).
+const MIN_PATCH_PX: f64 = 12.0;
+
+/// Terrain height near a position from the database (median template
+/// height within 20 km, for the first footprint) and the template side (px).
+fn terrain_near(
+    source: &dyn LandmarkSource,
+    levels: &[(u8, f64)],
+    at: &trn_geodesy::Geodetic,
+) -> Result<(f64, f64), crate::source::SourceError> {
+    let (m_lat, m_lon) = trn_geodesy::metres_per_degree(at.lat_deg);
+    let (dlat, dlon) = (20_000.0 / m_lat, 20_000.0 / m_lon.max(1.0));
+    let bbox =
+        trn_landmark::GeoBox::new(at.lon_deg - dlon, at.lat_deg - dlat, at.lon_deg + dlon, at.lat_deg + dlat);
+    let coarsest = levels.iter().map(|l| l.0).max().unwrap_or(0);
+    let near = source.query(&bbox, coarsest)?;
+    let mut h: Vec<f64> = near.iter().map(|t| t.center.h_m).collect();
+    h.sort_by(f64::total_cmp);
+    Ok((h.get(h.len() / 2).copied().unwrap_or(0.0), near.first().map_or(32.0, |t| t.width_px as f64)))
+}
+
+impl<'a> Navigator<'a> {
+    pub fn new(
+        source: &'a dyn LandmarkSource,
+        camera: &CameraConfig,
+        imu: &'a [ImuSample],
+        init: &TimedPose,
+        params: NavParams,
+    ) -> Result<Self, crate::source::SourceError> {
+        let levels: Vec<(u8, f64)> = source.levels()?.iter().map(|l| (l.level, l.gsd_m)).collect();
+        if levels.is_empty() {
+            return Err(crate::source::SourceError("the landmark database has no templates".into()));
+        }
+        let (terrain_h_m, template_px) = terrain_near(source, &levels, &init.position)?;
+        Ok(Self {
+            source,
+            camera: camera.model,
+            q_imu_cam: camera.q_cam_imu().inverse(),
+            imu,
+            lut: UndistortLut::new(&camera.model, PYRAMID_LEVELS),
+            levels,
+            template_px,
+            t: init.t,
+            pose: CameraPose::new(init.position.to_ecef(), init.q_ecef_cam),
+            sigma_m: params.init_sigma_m,
+            sigma_rad: params.init_sigma_deg.to_radians(),
+            params,
+            last_fix: None,
+            velocity: Vector3::zeros(),
+            terrain_h_m,
+        })
+    }
+
+    /// The pose guess at `t`: attitude through the gyro, position by the
+    /// velocity of the last fixes.
+    fn guess(&self, t: f64) -> CameraPose {
+        let dt = t - self.t;
+        let q = if self.params.use_gyro {
+            let q_ecef_imu = self.pose.q_ecef_cam * self.q_imu_cam.inverse();
+            propagate(q_ecef_imu, self.t, t, self.imu) * self.q_imu_cam
+        } else {
+            self.pose.q_ecef_cam
+        };
+        CameraPose::new(trn_geodesy::Ecef(self.pose.position.0 + self.velocity * dt), q)
+    }
+
+    /// The pose to report for a frame without an accepted fix.
+    fn carry(&mut self, t: f64) {
+        let g = self.guess(t);
+        let dt = (t - self.t).max(0.0);
+        self.sigma_m += self.params.velocity_sigma_m_s * dt;
+        self.sigma_rad += if self.params.use_gyro {
+            self.params.gyro_drift_deg_s.to_radians() * dt
+        } else {
+            // Without the gyro the attitude is only known at fixes.
+            (10.0f64).to_radians() * dt.max(0.5)
+        };
+        self.pose = g;
+        self.t = t;
+    }
+
+    /// Processes one image taken at `t`.
+    pub fn process(&mut self, t: f64, image: GreyImage) -> FrameResult {
+        let start = Instant::now();
+        let guess = self.guess(t);
+        let outcome = self.solve(t, &guess, image);
+        let ms = start.elapsed().as_secs_f64() * 1e3;
+        let (status, inliers, n_matches, matches) = match outcome {
+            Ok(sol) => {
+                let jump = self
+                    .last_fix
+                    .map(|(_, p)| (p.position.to_geodetic().h_m - sol.pose.position.to_geodetic().h_m).abs())
+                    .unwrap_or(0.0);
+                let accepted =
+                    sol.inliers >= self.params.min_inliers && jump <= self.params.max_height_jump_m;
+                if accepted {
+                    if let Some((tf, pf)) = self.last_fix {
+                        if t - tf > 1e-6 {
+                            self.velocity = (sol.pose.position.0 - pf.position.0) / (t - tf);
+                        }
+                    }
+                    self.last_fix = Some((t, sol.pose));
+                    self.pose = sol.pose;
+                    self.t = t;
+                    self.sigma_m = sol.sigma_m.max(5.0);
+                    self.sigma_rad = sol.sigma_rad.max(1e-4);
+                } else {
+                    debug!("t {t:.3}: fix rejected ({} inliers, height jump {jump:.0} m)", sol.inliers);
+                    self.carry(t);
+                }
+                let status = if accepted { FixStatus::Fix } else { FixStatus::Propagated };
+                (status, sol.inliers, sol.n_matches, sol.records)
+            }
+            Err(n) => {
+                self.carry(t);
+                (FixStatus::Propagated, 0, n, Vec::new())
+            }
+        };
+        let g = self.pose.position.to_geodetic();
+        FrameResult {
+            record: NavRecord {
+                pose: TimedPose { t, position: g, q_ecef_cam: self.pose.q_ecef_cam },
+                status,
+                inliers: inliers as u32,
+                matches: n_matches as u32,
+                ms,
+            },
+            matches: matches
+                .into_iter()
+                .map(|mut m| {
+                    m.t = t;
+                    m
+                })
+                .collect(),
+        }
+    }
+
+    /// Template level whose GSD is closest (in ratio) to `gsd_m`.
+    fn level_for(&self, gsd_m: f64) -> (u8, f64) {
+        *self
+            .levels
+            .iter()
+            .min_by(|a, b| (a.1 / gsd_m).ln().abs().total_cmp(&(b.1 / gsd_m).ln().abs()))
+            .expect("levels")
+    }
+
+    /// Coarse-to-fine pose from one image; `Err(matches)` when no pose came out.
+    fn solve(&mut self, t: f64, guess: &CameraPose, image: GreyImage) -> Result<Solution, usize> {
+        let pyr = Pyramid::new(image, PYRAMID_LEVELS);
+        let f = self.camera.fx.min(self.camera.fy);
+        let fp = footprint(
+            &self.camera,
+            guess,
+            &FootprintParams {
+                step_px: self.params.horizon_step_px,
+                alpha_max_deg: self.params.alpha_max_deg,
+                terrain_h_m: self.terrain_h_m,
+            },
+        )
+        .map_err(|e| {
+            debug!("t {t:.3}: {e}");
+            0usize
+        })?;
+        let sigma_px = f * (self.sigma_rad + self.sigma_m / fp.center_range_m);
+        let radius_full = (2.5 * sigma_px + 3.0).min(f * 0.25);
+        // Coarsest level whose search radius fits, then the finest.
+        let mut k = 0;
+        while k + 1 < pyr.levels.len() && radius_full / (1u32 << k) as f64 > self.params.max_radius_px as f64
+        {
+            k += 1;
+        }
+        // A coarse level needs enough landmarks in view, large enough to correlate.
+        while k > 0 && self.usable_landmarks(&fp, guess, k) < MIN_COARSE_LANDMARKS {
+            k -= 1;
+        }
+        let mut pose = *guess;
+        let mut radius = ((radius_full / (1u32 << k) as f64).ceil() as usize).max(4);
+        let mut best: Option<Solution> = None;
+        // Coarse to fine: each level starts from the pose of the one above.
+        for level in (0..=k).rev() {
+            let sol = self.stage(&pyr, &pose, &fp, level, radius, guess)?;
+            pose = sol.pose;
+            best = Some(sol);
+            radius = 5;
+        }
+        let mut sol = best.ok_or(0usize)?;
+        // The refined terrain height helps the next footprint.
+        if let Some(h) = sol.mean_landmark_h {
+            self.terrain_h_m = h;
+        }
+        sol.records.sort_by_key(|r| r.landmark);
+        Ok(sol)
+    }
+
+    /// One pyramid level: select, predict, correlate, RANSAC, refine.
+    fn stage(
+        &self,
+        pyr: &Pyramid,
+        pose: &CameraPose,
+        fp: &crate::footprint::Footprint,
+        level: usize,
+        radius: usize,
+        prior: &CameraPose,
+    ) -> Result<Solution, usize> {
+        let scale = (1u32 << level) as f64;
+        // Oblique views span many ground resolutions: query the levels around
+        // the centre's and keep each template only where its level fits the
+        // local resolution best.
+        let (db_level, _) = self.level_for(fp.center_gsd_m * scale);
+        let lo = db_level.saturating_sub(2);
+        let mut templates = Vec::new();
+        for l in self.levels.iter().map(|l| l.0).filter(|&l| l >= lo && l <= db_level + 2) {
+            templates.extend(self.source.query(&fp.bbox, l).map_err(|e| {
+                tracing::warn!("landmark query failed: {e}");
+                0usize
+            })?);
+        }
+        let pixel_angle = scale / self.camera.fx.min(self.camera.fy);
+        templates.retain(|t| {
+            let c = t.center_ecef();
+            let range = pose.position.distance_m(&c);
+            let up = t.center.up_ecef();
+            let cos_inc = ((pose.position.0 - c.0) / range.max(1e-9)).dot(&up).max(0.2);
+            let local_gsd = range * pixel_angle / cos_inc.sqrt();
+            self.level_for(local_gsd).0 == t.level
+        });
+        let chosen = self.spread(&templates, pose);
+        let img = &pyr.levels[level];
+        let view = ImageView::new(img.width, img.height, &img.data);
+        let predicted: Vec<Predicted> = chosen
+            .iter()
+            .filter_map(|t| predict(t, pose, &self.camera, &self.lut, level, 63, self.params.alpha_max_deg))
+            .collect();
+        let mut pixels = Vec::new();
+        let mut points = Vec::new();
+        let mut ids = Vec::new();
+        let mut preds = Vec::new();
+        for p in &predicted {
+            let u0 = p.patch_center.u;
+            let v0 = p.patch_center.v;
+            if let Ok(m) = ncc::match_template(&view, &p.patch, u0, v0, radius, &self.params.ncc) {
+                pixels.push(p.observed_center(Pixel::new(m.u, m.v)));
+                points.push(p.center_ecef.0);
+                ids.push(p.template_id);
+                preds.push(p.center_px);
+            }
+        }
+        let n = pixels.len();
+        debug!(
+            "level {level}: db levels around {db_level}, {} templates, {} predicted, {n} matches, radius {radius}",
+            templates.len(),
+            predicted.len()
+        );
+        if n < 4 {
+            return Err(n);
+        }
+        let rp = RansacParams {
+            threshold_px: self.params.ransac_threshold_px * scale,
+            min_inliers: 4,
+            ..RansacParams::default()
+        };
+        let r = ransac_p3p(&self.camera, &pixels, &points, &rp).ok_or(n)?;
+        let in_px: Vec<Pixel> = pixels.iter().zip(&r.inliers).filter(|x| *x.1).map(|x| *x.0).collect();
+        let in_pts: Vec<Vector3<f64>> =
+            points.iter().zip(&r.inliers).filter(|x| *x.1).map(|x| *x.0).collect();
+        let opts = RefineOptions {
+            prior: self
+                .params
+                .use_gyro
+                .then(|| (prior.q_ecef_cam, self.sigma_rad.max(self.params.attitude_prior_deg.to_radians()))),
+            huber_px: Some(scale),
+            pixel_sigma: 0.5 * scale,
+            ..RefineOptions::default()
+        };
+        let refined = refine_pose(&self.camera, &in_px, &in_pts, &r.pose, &opts).ok_or(n)?;
+        // Re-classify every match with the refined pose.
+        let thr = self.params.ransac_threshold_px * scale;
+        let mut records = Vec::with_capacity(n);
+        let mut inliers = 0;
+        let mut h_sum = 0.0;
+        for i in 0..n {
+            let pred = refined.pose.project(&self.camera, &trn_geodesy::Ecef(points[i]));
+            let res = pred.map_or(f64::INFINITY, |q| q.distance_px(&pixels[i]));
+            let inl = res <= thr;
+            if inl {
+                inliers += 1;
+                h_sum += trn_geodesy::Ecef(points[i]).to_geodetic().h_m;
+            }
+            let q = pred.unwrap_or(preds[i]);
+            records.push(MatchRecord {
+                t: 0.0,
+                landmark: ids[i],
+                u: pixels[i].u,
+                v: pixels[i].v,
+                pred_u: q.u,
+                pred_v: q.v,
+                residual_px: res.min(1e6),
+                inlier: inl,
+            });
+        }
+        let cov = refined.covariance;
+        let sigma_rad = (cov[(0, 0)] + cov[(1, 1)] + cov[(2, 2)]).max(0.0).sqrt();
+        let sigma_m = (cov[(3, 3)] + cov[(4, 4)] + cov[(5, 5)]).max(0.0).sqrt();
+        Ok(Solution {
+            pose: refined.pose,
+            inliers,
+            n_matches: n,
+            records,
+            sigma_m,
+            sigma_rad,
+            mean_landmark_h: (inliers > 0).then(|| h_sum / inliers as f64),
+        })
+    }
+
+    /// Landmarks of the level pyramid level `k` would use that land in the
+    /// image at least `MIN_PATCH_PX` level pixels wide.
+    fn usable_landmarks(&self, fp: &crate::footprint::Footprint, pose: &CameraPose, k: usize) -> usize {
+        let scale = (1u32 << k) as f64;
+        let (db_level, gsd) = self.level_for(fp.center_gsd_m * scale);
+        let size_px = self.template_px * gsd / (fp.center_gsd_m * scale);
+        if size_px < MIN_PATCH_PX {
+            return 0;
+        }
+        let Ok(ts) = self.source.query(&fp.bbox, db_level) else { return 0 };
+        let (w, h) = (self.camera.width as f64, self.camera.height as f64);
+        ts.iter()
+            .filter_map(|t| pose.project(&self.camera, &t.center_ecef()))
+            .filter(|p| p.u >= 0.0 && p.v >= 0.0 && p.u < w && p.v < h)
+            .count()
+    }
+
+    /// Landmarks in view, spread over image cells, best first, capped.
+    fn spread<'t>(&self, templates: &'t [Template], pose: &CameraPose) -> Vec<&'t Template> {
+        let (gx, gy) = self.params.grid;
+        let (w, h) = (self.camera.width as f64, self.camera.height as f64);
+        let mut cells: Vec<Vec<(f32, &Template)>> = vec![Vec::new(); gx * gy];
+        for t in templates {
+            let Some(p) = pose.project(&self.camera, &t.center_ecef()) else { continue };
+            if !(p.u >= 0.0 && p.v >= 0.0 && p.u < w && p.v < h) {
+                continue;
+            }
+            let (cx, cy) = (((p.u / w) * gx as f64) as usize, ((p.v / h) * gy as f64) as usize);
+            let q = &t.quality;
+            let score = q.shi_tomasi.sqrt() * (1.0 - q.second_peak_ncc).max(0.01);
+            cells[cy.min(gy - 1) * gx + cx.min(gx - 1)].push((score, t));
+        }
+        for c in &mut cells {
+            c.sort_by(|a, b| b.0.total_cmp(&a.0));
+        }
+        // Round-robin over cells so the cap keeps the spread.
+        let mut out = Vec::new();
+        let mut round = 0;
+        while out.len() < self.params.max_landmarks {
+            let mut any = false;
+            for c in &cells {
+                if let Some((_, t)) = c.get(round) {
+                    out.push(*t);
+                    any = true;
+                    if out.len() == self.params.max_landmarks {
+                        break;
+                    }
+                }
+            }
+            if !any {
+                break;
+            }
+            round += 1;
+        }
+        out
+    }
+}
+
+/// A pose from one frame before acceptance.
+struct Solution {
+    pose: CameraPose,
+    inliers: usize,
+    n_matches: usize,
+    records: Vec<MatchRecord>,
+    sigma_m: f64,
+    sigma_rad: f64,
+    mean_landmark_h: Option<f64>,
+}

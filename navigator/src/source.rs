@@ -1,0 +1,42 @@
+//! Where landmarks come from: the SQLite database directly (no server
+//! needed) or, later, the HTTP server; the navigator sees only this trait.
+
+use std::path::Path;
+
+use trn_landmark::{GeoBox, Template};
+use trn_store::{BboxQuery, LandmarkDb, LevelInfo};
+
+/// An error from a landmark source, with its location (file or URL).
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub struct SourceError(pub String);
+
+pub trait LandmarkSource {
+    /// The database's levels (GSD doubles per level).
+    fn levels(&self) -> Result<Vec<LevelInfo>, SourceError>;
+    /// Templates of one level whose footprint meets `bbox`.
+    fn query(&self, bbox: &GeoBox, level: u8) -> Result<Vec<Template>, SourceError>;
+}
+
+/// A landmark database opened directly.
+pub struct DbSource {
+    db: LandmarkDb,
+}
+
+impl DbSource {
+    pub fn open(path: &Path) -> Result<Self, SourceError> {
+        Ok(Self { db: LandmarkDb::open(path).map_err(|e| SourceError(e.to_string()))? })
+    }
+}
+
+impl LandmarkSource for DbSource {
+    fn levels(&self) -> Result<Vec<LevelInfo>, SourceError> {
+        self.db.levels().map_err(|e| SourceError(e.to_string()))
+    }
+
+    fn query(&self, bbox: &GeoBox, level: u8) -> Result<Vec<Template>, SourceError> {
+        self.db
+            .query_bbox(&BboxQuery::new(*bbox).with_levels(level..=level))
+            .map_err(|e| SourceError(e.to_string()))
+    }
+}

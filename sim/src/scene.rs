@@ -1,0 +1,393 @@
+//! The world the simulator renders: terrain heights (WGS84 ellipsoidal) on a
+//! latitude/longitude grid, the ortho's luminance as a pre-filtered pyramid,
+//! and the map from latitude/longitude to ortho pixels. Pure data and
+//! sampling; `load.rs` fills it through GDAL.
+
+use trn_geodesy::{WGS84_A, WGS84_B, WGS84_E2};
+
+/// Values on a regular latitude/longitude grid: node `(row, col)` lies at
+/// `lat = north_lat_deg - row * dlat_deg`, `lon = west_lon_deg + col * dlon_deg`.
+#[derive(Clone, Debug)]
+pub struct LatLonGrid<T> {
+    pub north_lat_deg: f64,
+    pub west_lon_deg: f64,
+    pub dlat_deg: f64,
+    pub dlon_deg: f64,
+    pub rows: usize,
+    pub cols: usize,
+    pub values: Vec<T>,
+}
+
+impl<T: Copy> LatLonGrid<T> {
+    /// Fractional (row, col) of a point; may lie outside the grid.
+    #[inline]
+    pub fn position(&self, lat_deg: f64, lon_deg: f64) -> (f64, f64) {
+        ((self.north_lat_deg - lat_deg) / self.dlat_deg, (lon_deg - self.west_lon_deg) / self.dlon_deg)
+    }
+
+    /// The four nodes around (row, col) and the weights within the cell, or
+    /// `None` outside the grid.
+    #[inline]
+    fn cell(&self, r: f64, c: f64) -> Option<(usize, f64, f64)> {
+        if !(r >= 0.0 && c >= 0.0) {
+            return None;
+        }
+        let (fr, fc) = (r.floor(), c.floor());
+        let (ir, ic) = (fr as usize, fc as usize);
+        if ir + 1 >= self.rows || ic + 1 >= self.cols {
+            // The last row/column belongs to the grid too.
+            if (r == (self.rows - 1) as f64 || ir + 1 < self.rows)
+                && (c == (self.cols - 1) as f64 || ic + 1 < self.cols)
+            {
+                let ir = ir.min(self.rows - 2);
+                let ic = ic.min(self.cols - 2);
+                return Some((ir * self.cols + ic, r - ir as f64, c - ic as f64));
+            }
+            return None;
+        }
+        Some((ir * self.cols + ic, r - fr, c - fc))
+    }
+}
+
+impl LatLonGrid<f32> {
+    /// Bilinear value; NaN outside the grid or next to a NaN node.
+    #[inline]
+    pub fn bilinear(&self, lat_deg: f64, lon_deg: f64) -> f64 {
+        let (r, c) = self.position(lat_deg, lon_deg);
+        let Some((i, tr, tc)) = self.cell(r, c) else { return f64::NAN };
+        let v = &self.values;
+        let (a, b, cc, d) =
+            (v[i] as f64, v[i + 1] as f64, v[i + self.cols] as f64, v[i + self.cols + 1] as f64);
+        (a * (1.0 - tc) + b * tc) * (1.0 - tr) + (cc * (1.0 - tc) + d * tc) * tr
+    }
+}
+
+impl LatLonGrid<[f64; 2]> {
+    /// Bilinear interpolation of a 2-vector field; `None` outside.
+    #[inline]
+    pub fn bilinear2(&self, lat_deg: f64, lon_deg: f64) -> Option<[f64; 2]> {
+        let (r, c) = self.position(lat_deg, lon_deg);
+        let (i, tr, tc) = self.cell(r, c)?;
+        let v = &self.values;
+        let (a, b, cc, d) = (v[i], v[i + 1], v[i + self.cols], v[i + self.cols + 1]);
+        let f =
+            |k: usize| (a[k] * (1.0 - tc) + b[k] * tc) * (1.0 - tr) + (cc[k] * (1.0 - tc) + d[k] * tc) * tr;
+        Some([f(0), f(1)])
+    }
+}
+
+/// Terrain heights above the WGS84 ellipsoid (m) with the bounds the ray
+/// marcher needs.
+#[derive(Clone, Debug)]
+pub struct Terrain {
+    /// Heights at grid nodes; NaN where no DEM covers.
+    pub heights: LatLonGrid<f32>,
+    pub h_min_m: f64,
+    pub h_max_m: f64,
+    /// Largest slope (rise over horizontal run) between neighbouring nodes:
+    /// the Lipschitz bound of the height field, for safe marching steps.
+    pub max_slope: f64,
+    /// Node spacing on the ground (m), the smaller of the two directions.
+    pub cell_m: f64,
+}
+
+impl Terrain {
+    /// Builds the bounds from the heights.
+    pub fn new(heights: LatLonGrid<f32>) -> Option<Self> {
+        let valid = || heights.values.iter().filter(|h| h.is_finite()).map(|&h| h as f64);
+        let h_min_m = valid().fold(f64::INFINITY, f64::min);
+        let h_max_m = valid().fold(f64::NEG_INFINITY, f64::max);
+        if !h_min_m.is_finite() {
+            return None;
+        }
+        let mid_lat = heights.north_lat_deg - heights.dlat_deg * (heights.rows as f64 - 1.0) / 2.0;
+        let (m_lat, m_lon) = trn_geodesy::metres_per_degree(mid_lat);
+        let (dy, dx) = (heights.dlat_deg * m_lat, heights.dlon_deg * m_lon);
+        let mut max_slope = 0.0f64;
+        let (rows, cols, v) = (heights.rows, heights.cols, &heights.values);
+        for r in 0..rows {
+            for c in 0..cols {
+                let h = v[r * cols + c];
+                let mut rise = |o: f32, run: f64| {
+                    let s = ((o - h) as f64 / run).abs();
+                    if s.is_finite() {
+                        max_slope = max_slope.max(s);
+                    }
+                };
+                if c + 1 < cols {
+                    rise(v[r * cols + c + 1], dx);
+                }
+                if r + 1 < rows {
+                    rise(v[(r + 1) * cols + c], dy);
+                }
+            }
+        }
+        // Diagonal slopes within a bilinear cell are at most sqrt(2) times the edge slopes.
+        Some(Self {
+            heights,
+            h_min_m,
+            h_max_m,
+            max_slope: max_slope * std::f64::consts::SQRT_2,
+            cell_m: dx.min(dy),
+        })
+    }
+
+    /// Height at a point, NaN where there is no DEM.
+    #[inline]
+    pub fn height_m(&self, lat_deg: f64, lon_deg: f64) -> f64 {
+        self.heights.bilinear(lat_deg, lon_deg)
+    }
+}
+
+/// One level of the luminance pyramid (0..255, NaN = no data).
+#[derive(Clone, Debug)]
+pub struct Level {
+    pub width: usize,
+    pub height: usize,
+    pub lum: Vec<f32>,
+}
+
+impl Level {
+    /// Bilinear sample at pixel-centre position (x, y) of this level; NaN
+    /// outside or next to no data.
+    #[inline]
+    pub fn bilinear(&self, x: f64, y: f64) -> f32 {
+        if !(x >= 0.0 && y >= 0.0) {
+            return f32::NAN;
+        }
+        let (ix, iy) = (x as usize, y as usize);
+        if ix + 1 >= self.width || iy + 1 >= self.height {
+            return f32::NAN;
+        }
+        let (tx, ty) = ((x - ix as f64) as f32, (y - iy as f64) as f32);
+        let i = iy * self.width + ix;
+        let l = &self.lum;
+        (l[i] * (1.0 - tx) + l[i + 1] * tx) * (1.0 - ty)
+            + (l[i + self.width] * (1.0 - tx) + l[i + self.width + 1] * tx) * ty
+    }
+
+    /// 2x2 box reduction (odd edges repeat the last pixel), so level k pixel
+    /// (i, j) averages level-0 pixels [2^k i, 2^k (i+1)).
+    pub fn reduce(&self) -> Level {
+        let (w, h) = (self.width.div_ceil(2), self.height.div_ceil(2));
+        let mut lum = vec![0f32; w * h];
+        for (y, row) in lum.chunks_exact_mut(w).enumerate() {
+            let (y0, y1) = (2 * y, (2 * y + 1).min(self.height - 1));
+            for (x, out) in row.iter_mut().enumerate() {
+                let (x0, x1) = (2 * x, (2 * x + 1).min(self.width - 1));
+                let s = self.lum[y0 * self.width + x0]
+                    + self.lum[y0 * self.width + x1]
+                    + self.lum[y1 * self.width + x0]
+                    + self.lum[y1 * self.width + x1];
+                *out = 0.25 * s;
+            }
+        }
+        Level { width: w, height: h, lum }
+    }
+}
+
+/// The ortho's luminance as a mip pyramid, sampled with a footprint.
+#[derive(Clone, Debug)]
+pub struct OrthoPyramid {
+    pub levels: Vec<Level>,
+}
+
+impl OrthoPyramid {
+    /// Builds the pyramid down to a few pixels.
+    pub fn new(level0: Level) -> Self {
+        let mut levels = vec![level0];
+        while levels.len() < 16 {
+            let last = levels.last().expect("level 0");
+            if last.width < 8 || last.height < 8 {
+                break;
+            }
+            let next = last.reduce();
+            levels.push(next);
+        }
+        Self { levels }
+    }
+
+    /// Trilinear sample at level-0 pixel-centre position (x, y), averaging a
+    /// footprint `footprint_px` level-0 pixels wide (<= 1: plain bilinear).
+    #[inline]
+    pub fn sample(&self, x: f64, y: f64, footprint_px: f64) -> f32 {
+        let lod = footprint_px.max(1.0).log2().min((self.levels.len() - 1) as f64);
+        let k = lod.floor() as usize;
+        let t = (lod - k as f64) as f32;
+        let a = self.sample_level(k, x, y);
+        if t < 1e-3 || k + 1 >= self.levels.len() {
+            return a;
+        }
+        a * (1.0 - t) + self.sample_level(k + 1, x, y) * t
+    }
+
+    /// Bilinear sample of level k at level-0 position (x, y): level k's pixel
+    /// i is centred on level-0 position 2^k i + (2^k - 1) / 2.
+    #[inline]
+    pub fn sample_level(&self, k: usize, x: f64, y: f64) -> f32 {
+        let s = (1u64 << k) as f64;
+        self.levels[k].bilinear((x + 0.5) / s - 0.5, (y + 0.5) / s - 0.5)
+    }
+}
+
+/// Everything the renderer needs.
+#[derive(Clone, Debug)]
+pub struct Scene {
+    pub terrain: Terrain,
+    pub ortho: OrthoPyramid,
+    /// Latitude/longitude -> ortho level-0 pixel-centre position (x = column, y = row).
+    pub to_ortho: LatLonGrid<[f64; 2]>,
+    /// Ortho pixel size on the ground (m).
+    pub ortho_gsd_m: f64,
+    /// The ortho's footprint.
+    pub ortho_extent: trn_landmark::GeoBox,
+}
+
+/// Geodetic latitude, longitude (degrees) and height (m) of an ECEF point by
+/// Bowring's formula with one iteration: sub-millimetre from below the
+/// ground to beyond 100 km, at a fraction of the iterative conversion's cost
+/// (the marcher calls it several times per pixel).
+#[inline]
+pub fn fast_geodetic(x: f64, y: f64, z: f64) -> (f64, f64, f64) {
+    let ep2 = WGS84_E2 / (1.0 - WGS84_E2);
+    // Plain square roots: libm's hypot guards against overflow we cannot have.
+    let p = (x * x + y * y).sqrt();
+    let lon = y.atan2(x);
+    // Parametric latitude without trigonometry: (cos, sin) of atan2(a z, b p).
+    let (bz, bp) = (WGS84_A * z, WGS84_B * p);
+    let r = (bz * bz + bp * bp).sqrt();
+    let (sb, cb) = (bz / r, bp / r);
+    let num = z + ep2 * WGS84_B * sb * sb * sb;
+    let den = p - WGS84_E2 * WGS84_A * cb * cb * cb;
+    let rr = (num * num + den * den).sqrt();
+    let (sl, cl) = (num / rr, den / rr);
+    let h = p * cl + z * sl - WGS84_A * (1.0 - WGS84_E2 * sl * sl).sqrt();
+    (num.atan2(den).to_degrees(), lon.to_degrees(), h)
+}
+
+/// [`fast_geodetic`] near a reference point: latitude and longitude as
+/// small-angle series around the reference instead of two `atan2` calls
+/// (exact to 1e-15 rad within 0.05 rad of it; farther points fall back).
+#[derive(Clone, Copy, Debug)]
+pub struct NearGeodetic {
+    lat0_rad: f64,
+    lon0_rad: f64,
+    sin_lat0: f64,
+    cos_lat0: f64,
+    sin_lon0: f64,
+    cos_lon0: f64,
+}
+
+impl NearGeodetic {
+    pub fn new(lat_deg: f64, lon_deg: f64) -> Self {
+        let (lat0_rad, lon0_rad) = (lat_deg.to_radians(), lon_deg.to_radians());
+        let ((sin_lat0, cos_lat0), (sin_lon0, cos_lon0)) = (lat0_rad.sin_cos(), lon0_rad.sin_cos());
+        Self { lat0_rad, lon0_rad, sin_lat0, cos_lat0, sin_lon0, cos_lon0 }
+    }
+
+    /// Latitude, longitude (degrees) and ellipsoidal height (m).
+    #[inline]
+    pub fn geodetic(&self, x: f64, y: f64, z: f64) -> (f64, f64, f64) {
+        let ep2 = WGS84_E2 / (1.0 - WGS84_E2);
+        let p = (x * x + y * y).sqrt();
+        let (bz, bp) = (WGS84_A * z, WGS84_B * p);
+        let r = (bz * bz + bp * bp).sqrt();
+        let (sb, cb) = (bz / r, bp / r);
+        let num = z + ep2 * WGS84_B * sb * sb * sb;
+        let den = p - WGS84_E2 * WGS84_A * cb * cb * cb;
+        let rr = (num * num + den * den).sqrt();
+        let (sl, cl) = (num / rr, den / rr);
+        let h = p * cl + z * sl - WGS84_A * (1.0 - WGS84_E2 * sl * sl).sqrt();
+        // Angle differences from the reference: atan of their tangents.
+        let t_lat = (sl * self.cos_lat0 - cl * self.sin_lat0) / (cl * self.cos_lat0 + sl * self.sin_lat0);
+        let t_lon = (y * self.cos_lon0 - x * self.sin_lon0) / (x * self.cos_lon0 + y * self.sin_lon0);
+        if t_lat.abs() > 0.05 || t_lon.abs() > 0.05 || !(cl * self.cos_lat0 + sl * self.sin_lat0 > 0.0) {
+            return fast_geodetic(x, y, z);
+        }
+        let lat = self.lat0_rad + small_atan(t_lat);
+        let lon = self.lon0_rad + small_atan(t_lon);
+        (lat.to_degrees(), lon.to_degrees(), h)
+    }
+}
+
+/// atan(t) for |t| <= 0.05: Taylor series to t^13 (truncation < 1e-19).
+#[inline]
+fn small_atan(t: f64) -> f64 {
+    let t2 = t * t;
+    t * (1.0
+        - t2 * (1.0 / 3.0
+            - t2 * (1.0 / 5.0 - t2 * (1.0 / 7.0 - t2 * (1.0 / 9.0 - t2 * (1.0 / 11.0 - t2 / 13.0))))))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use trn_geodesy::Geodetic;
+
+    #[test]
+    fn fast_geodetic_matches_iterative_below_a_millimetre() {
+        let mut worst: f64 = 0.0;
+        for lat in (-89..=89).step_by(7) {
+            for h in [-500.0, 0.0, 1500.0, 9000.0, 35_000.0, 120_000.0] {
+                let g = Geodetic::new(lat as f64 + 0.37, 12.3 * lat as f64 / 7.0, h);
+                let e = g.to_ecef();
+                let (la, lo, hh) = fast_geodetic(e.x(), e.y(), e.z());
+                let back = Geodetic::new(la, lo, hh).to_ecef();
+                worst = worst.max(back.distance_m(&e));
+            }
+        }
+        assert!(worst < 1e-3, "worst {worst} m");
+    }
+
+    #[test]
+    fn near_geodetic_matches_fast_geodetic() {
+        let near = NearGeodetic::new(40.3, -105.6);
+        let mut worst: f64 = 0.0;
+        for dlat in [-3.0, -0.5, 0.0, 0.01, 1.2, 2.8] {
+            for dlon in [-3.5, -1.0, 0.0, 0.3, 2.9] {
+                for h in [0.0, 2500.0, 30_000.0] {
+                    let e = Geodetic::new(40.3 + dlat, -105.6 + dlon, h).to_ecef();
+                    let (a, b) = (near.geodetic(e.x(), e.y(), e.z()), fast_geodetic(e.x(), e.y(), e.z()));
+                    worst = worst.max((a.0 - b.0).abs()).max((a.1 - b.1).abs());
+                    assert!((a.2 - b.2).abs() < 1e-9);
+                }
+            }
+        }
+        assert!(worst < 1e-12, "worst {worst} deg");
+    }
+
+    #[test]
+    fn pyramid_levels_keep_the_pixel_centre_convention() {
+        // A linear ramp stays a ramp under box filtering: every level must
+        // return the level-0 value at the same level-0 position.
+        let (w, h) = (64, 48);
+        let lum: Vec<f32> = (0..w * h).map(|i| ((i % w) as f32) * 2.0 + ((i / w) as f32) * 0.5).collect();
+        let p = OrthoPyramid::new(Level { width: w, height: h, lum });
+        for k in 0..3 {
+            for (x, y) in [(20.3, 17.8), (31.0, 9.25), (12.5, 22.0)] {
+                let want = (x * 2.0 + y * 0.5) as f32;
+                let got = p.sample_level(k, x, y);
+                assert!((got - want).abs() < 1e-3, "level {k} at ({x}, {y}): {got} vs {want}");
+            }
+        }
+    }
+
+    #[test]
+    fn grid_bilinear_interpolates_and_refuses_outside() {
+        let g = LatLonGrid {
+            north_lat_deg: 41.0,
+            west_lon_deg: -106.0,
+            dlat_deg: 0.5,
+            dlon_deg: 0.5,
+            rows: 3,
+            cols: 3,
+            values: vec![0f32, 1.0, 2.0, 10.0, 11.0, 12.0, 20.0, 21.0, 22.0],
+        };
+        assert!((g.bilinear(40.75, -105.75) - 5.5).abs() < 1e-9);
+        assert!((g.bilinear(40.0, -105.0) - 22.0).abs() < 1e-9);
+        assert!(g.bilinear(41.1, -105.5).is_nan());
+        assert!(g.bilinear(40.5, -104.9).is_nan());
+        let t = Terrain::new(g).unwrap();
+        assert_eq!((t.h_min_m, t.h_max_m), (0.0, 22.0));
+    }
+}

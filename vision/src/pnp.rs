@@ -1,0 +1,690 @@
+//! Levenberg-Marquardt refinement of a camera pose on 2D-3D matches
+//! (reprojection error in pixels through the full distortion model), with an
+//! optional Huber loss and attitude prior, and the pose covariance; plus
+//! [`solve`], RANSAC followed by refinement.
+//!
+//! Parameterisation (also the order of the covariance): a perturbation
+//! `[dtheta; dp]` of a pose acts as `q_ecef_cam <- exp(dtheta) * q_ecef_cam`
+//! (rotation vector `dtheta`, rad, in the ECEF frame) and
+//! `position <- position + dp` (ECEF, m). For east/north/up, rotate each 3x3
+//! block with `trn_geodesy::LocalFrame::r_ecef_enu()`: `R^T P R`.
+
+use nalgebra::{Matrix2x3, Matrix3, Matrix6, SMatrix, UnitQuaternion, Vector2, Vector3, Vector6};
+use trn_camera::{CameraModel, CameraPose, NormalizedPoint, Pixel};
+use trn_geodesy::Ecef;
+
+use crate::ransac::{ransac_p3p, RansacParams};
+
+/// Settings of [`refine_pose`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RefineOptions {
+    /// Upper bound on Levenberg-Marquardt steps (accepted or not).
+    pub max_iterations: usize,
+    /// Huber loss on each point's reprojection error (pixels): quadratic below
+    /// this, linear above. `None`: plain least squares.
+    pub huber_px: Option<f64>,
+    /// Attitude prior: `(q_ecef_cam, sigma_rad)` adds the residual
+    /// `log(q_ecef_cam * q_prior^-1) / sigma` (rotation vector, ECEF frame),
+    /// e.g. a gyro-propagated attitude that pins tilt where a narrow-FOV nadir
+    /// view cannot tell tilt from translation.
+    pub prior: Option<(UnitQuaternion<f64>, f64)>,
+    /// Standard deviation of a pixel coordinate (px): pixel residuals are
+    /// divided by it, so it weighs them against the prior and scales the
+    /// covariance.
+    pub pixel_sigma: f64,
+}
+
+impl Default for RefineOptions {
+    fn default() -> Self {
+        Self { max_iterations: 50, huber_px: None, prior: None, pixel_sigma: 1.0 }
+    }
+}
+
+/// A refined pose.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Refined {
+    pub pose: CameraPose,
+    /// Covariance of `[dtheta (rad, ECEF); dp (m, ECEF)]` (see the module
+    /// docs): the inverse of the whitened Gauss-Newton Hessian at the solution,
+    /// `(J^T W J / pixel_sigma^2 + prior)^-1` (`W`: Huber weights), i.e.
+    /// `(J^T J)^-1 pixel_sigma^2` without prior and loss.
+    pub covariance: Matrix6<f64>,
+    /// Root mean square of the points' reprojection errors (pixels).
+    pub rms_px: f64,
+    /// Reprojection error (distance, pixels) of every point at the solution.
+    pub residuals_px: Vec<f64>,
+    /// Levenberg-Marquardt steps taken (accepted or not).
+    pub iterations: usize,
+}
+
+impl Refined {
+    /// Covariance of the attitude error (rad^2, rotation vector in ECEF).
+    pub fn attitude_covariance(&self) -> Matrix3<f64> {
+        self.covariance.fixed_view::<3, 3>(0, 0).into_owned()
+    }
+
+    /// Covariance of the position (m^2, ECEF).
+    pub fn position_covariance(&self) -> Matrix3<f64> {
+        self.covariance.fixed_view::<3, 3>(3, 3).into_owned()
+    }
+}
+
+/// Levenberg-Marquardt on the reprojection errors (2 residuals per match, in
+/// pixels, through the full distortion model, analytic Jacobian via
+/// [`trn_camera::Distortion::jacobian`]), from `initial`. `None` when there
+/// are fewer than 3 matches, lengths differ, an option is invalid
+/// (`pixel_sigma`, Huber threshold or prior sigma not positive), a point is
+/// behind the camera at `initial`, or the pose is not determined at the
+/// solution (e.g. all points identical).
+pub fn refine_pose(
+    camera: &CameraModel,
+    pixels: &[Pixel],
+    points_ecef: &[Vector3<f64>],
+    initial: &CameraPose,
+    opts: &RefineOptions,
+) -> Option<Refined> {
+    let n = pixels.len();
+    if n < 3 || points_ecef.len() != n || !(opts.pixel_sigma > 0.0 && opts.pixel_sigma.is_finite()) {
+        return None;
+    }
+    if opts.huber_px.is_some_and(|k| !(k > 0.0))
+        || opts.prior.is_some_and(|(_, s)| !(s > 0.0 && s.is_finite()))
+    {
+        return None;
+    }
+    // Work relative to the initial position (precision at ECEF magnitudes).
+    let origin = initial.position;
+    let problem = Problem {
+        camera,
+        pixels,
+        local: points_ecef.iter().map(|p| p - origin.0).collect(),
+        huber_px: opts.huber_px,
+        inv_sigma2: 1.0 / (opts.pixel_sigma * opts.pixel_sigma),
+        prior: opts.prior,
+    };
+    let mut state = State { q: initial.q_ecef_cam, c: Vector3::zeros() };
+    let mut lin = problem.linearize(&state)?;
+    if !lin.cost.is_finite() {
+        return None;
+    }
+    let depth_scale =
+        (problem.local.iter().map(|x| x.norm_squared()).sum::<f64>() / n as f64).sqrt().max(1e-3);
+
+    let mut mu = 1e-4;
+    let mut iterations = 0;
+    while iterations < opts.max_iterations {
+        iterations += 1;
+        // Marquardt damping on the diagonal (plus a tiny floor for rank-deficient H).
+        let max_diag = lin.h.diagonal().max();
+        let mut a = lin.h;
+        for i in 0..6 {
+            a[(i, i)] += mu * (lin.h[(i, i)] + 1e-12 * max_diag);
+        }
+        let Some(delta) = a.cholesky().map(|ch| ch.solve(&-lin.g)) else {
+            mu *= 10.0;
+            continue;
+        };
+        let candidate = state.apply(&delta);
+        let tiny_step =
+            delta.fixed_rows::<3>(0).norm() < 1e-13 && delta.fixed_rows::<3>(3).norm() < 1e-13 * depth_scale;
+        match problem.linearize(&candidate) {
+            Some(next) if next.cost < lin.cost => {
+                let decrease = lin.cost - next.cost;
+                let old_cost = lin.cost;
+                state = candidate;
+                lin = next;
+                mu = (mu * 0.1).max(1e-12);
+                // Converged: tiny step, stalled cost, or (noise-free) RMS below 1e-12 px.
+                if tiny_step
+                    || decrease <= 1e-14 * old_cost
+                    || lin.cost <= 1e-24 * n as f64 * problem.inv_sigma2
+                {
+                    break;
+                }
+            }
+            _ => {
+                mu *= 10.0;
+                if tiny_step || mu > 1e12 {
+                    break;
+                }
+            }
+        }
+    }
+
+    let covariance = invert_normalized(&lin.h)?;
+    let pose = CameraPose { position: Ecef(origin.0 + state.c), q_ecef_cam: state.q };
+    let residuals_px: Vec<f64> =
+        problem.local.iter().zip(pixels).map(|(x, px)| problem.error_px(&state, x, px)).collect();
+    let rms_px = (residuals_px.iter().map(|e| e * e).sum::<f64>() / n as f64).sqrt();
+    Some(Refined { pose, covariance, rms_px, residuals_px, iterations })
+}
+
+/// RANSAC ([`ransac_p3p`]), then [`refine_pose`] on its inliers, then the
+/// inliers re-classified with the refined pose (`threshold_px`) and, if they
+/// changed, one more refinement on the new set.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Solution {
+    pub pose: CameraPose,
+    /// See [`Refined::covariance`].
+    pub covariance: Matrix6<f64>,
+    /// The matches used in the final refinement.
+    pub inliers: Vec<bool>,
+    pub n_inliers: usize,
+    /// RMS reprojection error (pixels) over the inliers.
+    pub rms_px: f64,
+    /// Reprojection error (pixels) of every match at the final pose (infinite
+    /// behind the camera).
+    pub residuals_px: Vec<f64>,
+    pub ransac_iterations: usize,
+    /// Levenberg-Marquardt steps of all refinement rounds.
+    pub refine_iterations: usize,
+}
+
+impl Solution {
+    pub fn attitude_covariance(&self) -> Matrix3<f64> {
+        self.covariance.fixed_view::<3, 3>(0, 0).into_owned()
+    }
+
+    pub fn position_covariance(&self) -> Matrix3<f64> {
+        self.covariance.fixed_view::<3, 3>(3, 3).into_owned()
+    }
+}
+
+/// Robust pose from 2D-3D matches, see [`Solution`]. `None` when RANSAC fails,
+/// a refinement fails, or fewer than `max(min_inliers, 4)` inliers remain.
+pub fn solve(
+    camera: &CameraModel,
+    pixels: &[Pixel],
+    points_ecef: &[Vector3<f64>],
+    ransac_params: &RansacParams,
+    refine_opts: &RefineOptions,
+) -> Option<Solution> {
+    let ransac = ransac_p3p(camera, pixels, points_ecef, ransac_params)?;
+    let min_inliers = ransac_params.min_inliers.max(4);
+    let threshold = ransac_params.threshold_px;
+    let refine_on = |inliers: &[bool], initial: &CameraPose| {
+        let (px, pts): (Vec<Pixel>, Vec<Vector3<f64>>) =
+            (0..pixels.len()).filter(|&i| inliers[i]).map(|i| (pixels[i], points_ecef[i])).unzip();
+        refine_pose(camera, &px, &pts, initial, refine_opts)
+    };
+    let all_errors = |pose: &CameraPose| -> Vec<f64> {
+        pixels
+            .iter()
+            .zip(points_ecef)
+            .map(|(px, p)| pose.project(camera, &Ecef(*p)).map_or(f64::INFINITY, |q| q.distance_px(px)))
+            .map(|e| if e.is_nan() { f64::INFINITY } else { e })
+            .collect()
+    };
+
+    let mut inliers = ransac.inliers;
+    let mut refined = refine_on(&inliers, &ransac.pose)?;
+    let mut iterations = refined.iterations;
+    let mut residuals = all_errors(&refined.pose);
+    let reclassified: Vec<bool> = residuals.iter().map(|&e| e < threshold).collect();
+    if reclassified != inliers {
+        inliers = reclassified;
+        if inliers.iter().filter(|&&b| b).count() < min_inliers {
+            return None;
+        }
+        refined = refine_on(&inliers, &refined.pose)?;
+        iterations += refined.iterations;
+        residuals = all_errors(&refined.pose);
+    }
+    let n_inliers = inliers.iter().filter(|&&b| b).count();
+    if n_inliers < min_inliers {
+        return None;
+    }
+    Some(Solution {
+        pose: refined.pose,
+        covariance: refined.covariance,
+        inliers,
+        n_inliers,
+        rms_px: refined.rms_px,
+        residuals_px: residuals,
+        ransac_iterations: ransac.iterations,
+        refine_iterations: iterations,
+    })
+}
+
+/// Pose being refined: attitude and camera centre relative to the origin.
+#[derive(Clone, Copy, Debug)]
+struct State {
+    q: UnitQuaternion<f64>,
+    c: Vector3<f64>,
+}
+
+impl State {
+    fn apply(&self, delta: &Vector6<f64>) -> State {
+        let dtheta = delta.fixed_rows::<3>(0).into_owned();
+        State { q: UnitQuaternion::from_scaled_axis(dtheta) * self.q, c: self.c + delta.fixed_rows::<3>(3) }
+    }
+}
+
+/// Cost `sum rho(e_i) / sigma^2 + |r_prior|^2`, with gradient `g` and
+/// Gauss-Newton Hessian `h` of half of it.
+struct Linearization {
+    cost: f64,
+    h: Matrix6<f64>,
+    g: Vector6<f64>,
+}
+
+struct Problem<'a> {
+    camera: &'a CameraModel,
+    pixels: &'a [Pixel],
+    local: Vec<Vector3<f64>>,
+    huber_px: Option<f64>,
+    inv_sigma2: f64,
+    prior: Option<(UnitQuaternion<f64>, f64)>,
+}
+
+impl Problem<'_> {
+    /// `None` when a point is behind the camera.
+    fn linearize(&self, state: &State) -> Option<Linearization> {
+        let cam = self.camera;
+        let r_cam_ecef = state.q.inverse().to_rotation_matrix().into_inner();
+        let mut cost = 0.0;
+        let mut h = Matrix6::zeros();
+        let mut g = Vector6::zeros();
+        for (x, obs) in self.local.iter().zip(self.pixels) {
+            let v = x - state.c;
+            let p = r_cam_ecef * v;
+            if !(p.z > 0.0) {
+                return None;
+            }
+            let inv_z = 1.0 / p.z;
+            let n = NormalizedPoint::new(p.x * inv_z, p.y * inv_z);
+            let d = cam.distortion.apply(n);
+            let r = Vector2::new(cam.fx * d.x + cam.cx - obs.u, cam.fy * d.y + cam.cy - obs.v);
+            let e2 = r.norm_squared();
+            let (rho, w) = match self.huber_px {
+                Some(k) if e2 > k * k => {
+                    let e = e2.sqrt();
+                    (2.0 * k * e - k * k, k / e)
+                }
+                _ => (e2, 1.0),
+            };
+            cost += rho * self.inv_sigma2;
+            // d(pixel)/d(p_cam) = diag(fx, fy) * D(distortion) * d(x/z, y/z)/dp
+            let jd = cam.distortion.jacobian(n);
+            let jn = Matrix2x3::new(inv_z, 0.0, -n.x * inv_z, 0.0, inv_z, -n.y * inv_z);
+            let mut a = jd * jn;
+            a.row_mut(0).scale_mut(cam.fx);
+            a.row_mut(1).scale_mut(cam.fy);
+            // p = R^T (x - c): dp/dtheta = R^T [v]x, dp/dc = -R^T.
+            let b = a * r_cam_ecef;
+            let j_theta = b * v.cross_matrix();
+            let mut j = SMatrix::<f64, 2, 6>::zeros();
+            j.fixed_view_mut::<2, 3>(0, 0).copy_from(&j_theta);
+            j.fixed_view_mut::<2, 3>(0, 3).copy_from(&-b);
+            let ws = w * self.inv_sigma2;
+            h += j.transpose() * j * ws;
+            g += j.transpose() * r * ws;
+        }
+        if let Some((q_prior, sigma)) = self.prior {
+            let phi = rotation_vector(&(state.q * q_prior.inverse()));
+            let r = phi / sigma;
+            let jp = inverse_left_jacobian(&phi) / sigma;
+            cost += r.norm_squared();
+            let mut hp = h.fixed_view_mut::<3, 3>(0, 0);
+            hp += jp.transpose() * jp;
+            let mut gp = g.fixed_rows_mut::<3>(0);
+            gp += jp.transpose() * r;
+        }
+        Some(Linearization { cost, h, g })
+    }
+
+    /// Reprojection error (pixels) of one point; infinite behind the camera.
+    fn error_px(&self, state: &State, x: &Vector3<f64>, px: &Pixel) -> f64 {
+        let p = state.q.inverse_transform_vector(&(x - state.c));
+        self.camera.project(&p).map_or(f64::INFINITY, |q| q.distance_px(px))
+    }
+}
+
+/// Rotation vector (axis * angle, angle in `[0, pi]`) of a unit quaternion,
+/// accurate for small angles (nalgebra's `scaled_axis` goes through `acos`).
+pub(crate) fn rotation_vector(q: &UnitQuaternion<f64>) -> Vector3<f64> {
+    let (w, v) = if q.w < 0.0 { (-q.w, -q.imag()) } else { (q.w, q.imag()) };
+    let s = v.norm();
+    if s < 1e-300 {
+        return v * 2.0;
+    }
+    v * (2.0 * s.atan2(w) / s)
+}
+
+/// `J_l^-1(phi)` of SO(3): `log(exp(d) exp(phi)) = phi + J_l^-1(phi) d + O(d^2)`.
+fn inverse_left_jacobian(phi: &Vector3<f64>) -> Matrix3<f64> {
+    let theta2 = phi.norm_squared();
+    let k = phi.cross_matrix();
+    let coeff = if theta2 < 1e-8 {
+        1.0 / 12.0 + theta2 / 720.0
+    } else {
+        let theta = theta2.sqrt();
+        1.0 / theta2 - (1.0 + theta.cos()) / (2.0 * theta * theta.sin())
+    };
+    Matrix3::identity() - k * 0.5 + k * k * coeff
+}
+
+/// Inverse of a symmetric positive definite 6x6 matrix, after scaling it to
+/// unit diagonal; `None` when its condition (so scaled) exceeds 1e12.
+fn invert_normalized(h: &Matrix6<f64>) -> Option<Matrix6<f64>> {
+    let diag = h.diagonal();
+    if !diag.iter().all(|&d| d > 0.0 && d.is_finite()) {
+        return None;
+    }
+    let s = diag.map(|d| 1.0 / d.sqrt());
+    let hn = Matrix6::from_fn(|i, j| h[(i, j)] * s[i] * s[j]);
+    let eig = hn.symmetric_eigen();
+    let (min, max) = (eig.eigenvalues.min(), eig.eigenvalues.max());
+    if !(min > 1e-12 * max) {
+        return None;
+    }
+    let inv = hn.cholesky()?.inverse();
+    Some(Matrix6::from_fn(|i, j| inv[(i, j)] * s[i] * s[j]))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ransac::testutil::*;
+    use crate::ransac::Rng;
+    use trn_camera::Distortion;
+
+    fn perturbed(rng: &mut Rng, pose: &CameraPose, metres: f64, deg: f64) -> CameraPose {
+        let dq = UnitQuaternion::from_scaled_axis(random_unit(rng) * deg.to_radians());
+        CameraPose {
+            position: Ecef(pose.position.0 + random_unit(rng) * metres),
+            q_ecef_cam: dq * pose.q_ecef_cam,
+        }
+    }
+
+    /// Error vector `[dtheta; dp]` of an estimate (the covariance's order).
+    fn error(est: &CameraPose, truth: &CameraPose) -> Vector6<f64> {
+        let dtheta = rotation_vector(&(est.q_ecef_cam * truth.q_ecef_cam.inverse()));
+        let dp = est.position.0 - truth.position.0;
+        Vector6::new(dtheta.x, dtheta.y, dtheta.z, dp.x, dp.y, dp.z)
+    }
+
+    fn exact_case(camera: &CameraModel, altitude: f64, seed: u64, label: &str) {
+        let mut rng = Rng::new(seed);
+        let (mut worst_pos, mut worst_rot, mut worst_it) = (0.0f64, 0.0f64, 0);
+        for _ in 0..20 {
+            let scene = nadir_scene(&mut rng, camera, altitude, 40, 500.0, 10.0);
+            let start = perturbed(&mut rng, &scene.pose, 100.0, 1.0);
+            let r = refine_pose(camera, &scene.pixels, &scene.points, &start, &RefineOptions::default())
+                .expect("refined");
+            worst_pos = worst_pos.max(r.pose.position.distance_m(&scene.pose.position));
+            worst_rot = worst_rot.max(rotation_error(&r.pose.q_ecef_cam, &scene.pose.q_ecef_cam));
+            worst_it = worst_it.max(r.iterations);
+            assert!(r.rms_px < 1e-6, "{}", r.rms_px);
+        }
+        println!(
+            "refine noise-free {label}: worst position error {worst_pos:.2e} m, rotation {worst_rot:.2e} rad, \
+             {worst_it} iterations"
+        );
+        assert!(worst_pos < 1e-6 && worst_rot < 1e-9, "{worst_pos:e} {worst_rot:e}");
+    }
+
+    #[test]
+    fn noise_free_is_exact_from_perturbed_start() {
+        exact_case(&CameraModel::from_fov(1024, 768, 60.0), 5000.0, 1, "60 deg 5 km");
+        exact_case(&CameraModel::from_fov(1024, 768, 32.0), 30_000.0, 2, "32 deg 30 km");
+    }
+
+    #[test]
+    fn noise_free_with_distortion_is_exact() {
+        let mut camera = CameraModel::from_fov(1024, 768, 60.0);
+        camera.distortion = Distortion { k1: -0.2, k2: 0.05, p1: 0.001, p2: -0.0005, k3: 0.0 };
+        camera.validate().unwrap();
+        exact_case(&camera, 5000.0, 3, "60 deg 5 km distorted");
+    }
+
+    #[test]
+    fn jacobian_matches_finite_differences() {
+        let mut camera = CameraModel::from_fov(640, 480, 70.0);
+        camera.distortion = Distortion { k1: -0.2, k2: 0.05, p1: 0.001, p2: -0.0005, k3: 0.01 };
+        let mut rng = Rng::new(4);
+        let scene = nadir_scene(&mut rng, &camera, 3000.0, 10, 300.0, 10.0);
+        let origin = scene.pose.position;
+        let q_prior = UnitQuaternion::from_scaled_axis(Vector3::new(0.1, -0.2, 0.05)) * scene.pose.q_ecef_cam;
+        let problem = Problem {
+            camera: &camera,
+            pixels: &scene.pixels,
+            local: scene.points.iter().map(|p| p - origin.0).collect(),
+            huber_px: None,
+            inv_sigma2: 1.0,
+            prior: Some((q_prior, 0.01)),
+        };
+        let start = perturbed(&mut rng, &scene.pose, 30.0, 0.5);
+        let state = State { q: start.q_ecef_cam, c: start.position.0 - origin.0 };
+        let lin = problem.linearize(&state).unwrap();
+        // The gradient of half the cost by central differences.
+        for i in 0..6 {
+            let h = if i < 3 { 1e-7 } else { 1e-4 };
+            let mut d = Vector6::zeros();
+            d[i] = h;
+            let plus = problem.linearize(&state.apply(&d)).unwrap().cost;
+            let minus = problem.linearize(&state.apply(&-d)).unwrap().cost;
+            let numeric = 0.25 * (plus - minus) / h;
+            assert!((numeric - lin.g[i]).abs() < 1e-5 * lin.g.abs().max(), "{i}: {numeric} {}", lin.g[i]);
+        }
+    }
+
+    /// Mean normalised estimation error squared over trials, per dimension.
+    fn nees_case(opts: &RefineOptions, noise: f64, trials: usize, seed: u64) -> f64 {
+        let camera = CameraModel::from_fov(1024, 768, 45.0);
+        let mut rng = Rng::new(seed);
+        let mut sum = 0.0;
+        for _ in 0..trials {
+            let mut scene = nadir_scene(&mut rng, &camera, 8000.0, 50, 800.0, 10.0);
+            add_noise(&mut rng, &mut scene.pixels, noise);
+            let start = perturbed(&mut rng, &scene.pose, 50.0, 0.5);
+            let r = refine_pose(&camera, &scene.pixels, &scene.points, &start, opts).unwrap();
+            let e = error(&r.pose, &scene.pose);
+            let inv = r.covariance.try_inverse().unwrap();
+            sum += (e.transpose() * inv * e)[(0, 0)] / 6.0;
+        }
+        sum / trials as f64
+    }
+
+    #[test]
+    fn covariance_matches_errors_with_noise() {
+        let opts = RefineOptions { pixel_sigma: 0.5, ..RefineOptions::default() };
+        let nees = nees_case(&opts, 0.5, 300, 5);
+        let huber = RefineOptions { huber_px: Some(1.5), ..opts };
+        let nees_huber = nees_case(&huber, 0.5, 100, 6);
+        println!("refine 0.5 px noise: mean NEES/6 = {nees:.3} (plain), {nees_huber:.3} (Huber 1.5 px)");
+        assert!((0.5..2.0).contains(&nees), "{nees}");
+        assert!((0.5..2.0).contains(&nees_huber), "{nees_huber}");
+        // A prior consistent with its sigma keeps the covariance honest.
+        let mut rng = Rng::new(7);
+        let camera = CameraModel::from_fov(1024, 768, 32.0);
+        let mut sum = 0.0;
+        let trials = 200;
+        for _ in 0..trials {
+            let mut scene = nadir_scene(&mut rng, &camera, 30_000.0, 60, 500.0, 3.0);
+            add_noise(&mut rng, &mut scene.pixels, 1.0);
+            let sigma = 0.01f64.to_radians();
+            let noise = Vector3::new(rng.gaussian(), rng.gaussian(), rng.gaussian()) * sigma;
+            let prior = UnitQuaternion::from_scaled_axis(noise) * scene.pose.q_ecef_cam;
+            let opts = RefineOptions { prior: Some((prior, sigma)), ..RefineOptions::default() };
+            let start = perturbed(&mut rng, &scene.pose, 100.0, 1.0);
+            let r = refine_pose(&camera, &scene.pixels, &scene.points, &start, &opts).unwrap();
+            let e = error(&r.pose, &scene.pose);
+            sum += (e.transpose() * r.covariance.try_inverse().unwrap() * e)[(0, 0)] / 6.0;
+        }
+        let nees_prior = sum / trials as f64;
+        println!("refine 1 px noise, 32 deg 30 km, 0.01 deg prior: mean NEES/6 = {nees_prior:.3}");
+        assert!((0.5..2.0).contains(&nees_prior), "{nees_prior}");
+    }
+
+    #[test]
+    fn attitude_prior_fixes_narrow_fov_tilt_translation_ambiguity() {
+        let camera = CameraModel::from_fov(1024, 768, 32.0);
+        let mut rng = Rng::new(8);
+        let sigma = 0.01f64.to_radians();
+        let trials = 100;
+        let (mut err_free, mut err_prior, mut sd_free, mut sd_prior) = (0.0, 0.0, 0.0, 0.0);
+        for _ in 0..trials {
+            let mut scene = nadir_scene(&mut rng, &camera, 30_000.0, 60, 300.0, 2.0);
+            add_noise(&mut rng, &mut scene.pixels, 1.0);
+            let start = perturbed(&mut rng, &scene.pose, 100.0, 1.0);
+            let free = refine_pose(&camera, &scene.pixels, &scene.points, &start, &RefineOptions::default())
+                .expect("refined without prior");
+            let noise = Vector3::new(rng.gaussian(), rng.gaussian(), rng.gaussian()) * sigma;
+            let prior = UnitQuaternion::from_scaled_axis(noise) * scene.pose.q_ecef_cam;
+            let opts = RefineOptions { prior: Some((prior, sigma)), ..RefineOptions::default() };
+            let with = refine_pose(&camera, &scene.pixels, &scene.points, &start, &opts).expect("refined");
+            err_free += free.pose.position.distance_m(&scene.pose.position).powi(2);
+            err_prior += with.pose.position.distance_m(&scene.pose.position).powi(2);
+            sd_free += free.position_covariance().trace();
+            sd_prior += with.position_covariance().trace();
+        }
+        let rms = |s: f64| (s / trials as f64).sqrt();
+        println!(
+            "narrow FOV nadir, 30 km, 60 points, 1 px: position RMS error {:.1} m without prior \
+             (predicted {:.1} m), {:.1} m with 0.01 deg prior (predicted {:.1} m)",
+            rms(err_free),
+            rms(sd_free),
+            rms(err_prior),
+            rms(sd_prior)
+        );
+        assert!(rms(err_prior) < 0.5 * rms(err_free));
+        assert!(rms(sd_prior) < 0.5 * rms(sd_free));
+    }
+
+    #[test]
+    fn huber_resists_outliers() {
+        let camera = CameraModel::from_fov(1024, 768, 60.0);
+        let mut rng = Rng::new(9);
+        let mut scene = nadir_scene(&mut rng, &camera, 5000.0, 80, 500.0, 10.0);
+        add_noise(&mut rng, &mut scene.pixels, 0.5);
+        for p in scene.pixels.iter_mut().take(6) {
+            p.u += 15.0;
+            p.v -= 10.0;
+        }
+        let start = perturbed(&mut rng, &scene.pose, 20.0, 0.2);
+        let plain =
+            refine_pose(&camera, &scene.pixels, &scene.points, &start, &RefineOptions::default()).unwrap();
+        let opts = RefineOptions { huber_px: Some(1.0), ..RefineOptions::default() };
+        let robust = refine_pose(&camera, &scene.pixels, &scene.points, &start, &opts).unwrap();
+        let (e_plain, e_robust) = (
+            plain.pose.position.distance_m(&scene.pose.position),
+            robust.pose.position.distance_m(&scene.pose.position),
+        );
+        println!("6/80 gross outliers: position error {e_plain:.2} m plain, {e_robust:.2} m Huber 1 px");
+        assert!(e_robust < 0.5 * e_plain);
+        assert!(robust.residuals_px[..6].iter().all(|&e| e > 8.0));
+    }
+
+    #[test]
+    fn degenerate_input_gives_none() {
+        let camera = CameraModel::from_fov(1024, 768, 60.0);
+        let mut rng = Rng::new(10);
+        let scene = nadir_scene(&mut rng, &camera, 5000.0, 10, 500.0, 10.0);
+        let opts = RefineOptions::default();
+        let pose = scene.pose;
+        assert!(refine_pose(&camera, &scene.pixels[..2], &scene.points[..2], &pose, &opts).is_none());
+        assert!(refine_pose(&camera, &[], &[], &pose, &opts).is_none());
+        assert!(refine_pose(&camera, &scene.pixels[..4], &scene.points[..3], &pose, &opts).is_none());
+        let same = vec![scene.points[0]; 10];
+        assert!(refine_pose(&camera, &scene.pixels, &same, &pose, &opts).is_none());
+        let same_px = vec![scene.pixels[0]; 10];
+        assert!(refine_pose(&camera, &same_px, &same, &pose, &opts).is_none());
+        // Camera looking away from the points.
+        let away = CameraPose {
+            q_ecef_cam: UnitQuaternion::from_scaled_axis(Vector3::x() * 3.0) * pose.q_ecef_cam,
+            ..pose
+        };
+        assert!(refine_pose(&camera, &scene.pixels, &scene.points, &away, &opts).is_none());
+        let bad = RefineOptions { pixel_sigma: 0.0, ..opts };
+        assert!(refine_pose(&camera, &scene.pixels, &scene.points, &pose, &bad).is_none());
+        let mut nan_px = scene.pixels.clone();
+        nan_px[0].u = f64::NAN;
+        assert!(refine_pose(&camera, &nan_px, &scene.points, &pose, &opts).is_none());
+        // Three exact points do determine the pose (locally).
+        let r = refine_pose(&camera, &scene.pixels[..3], &scene.points[..3], &pose, &opts);
+        assert!(r.is_some());
+    }
+
+    fn solve_case(seed: u64, share: f64, camera: &CameraModel, altitude: f64) {
+        let mut rng = Rng::new(seed);
+        let mut scene = nadir_scene(&mut rng, camera, altitude, 120, 500.0, 10.0);
+        add_noise(&mut rng, &mut scene.pixels, 0.5);
+        let truth = add_outliers(&mut rng, camera, &mut scene.pixels, share);
+        let params = RansacParams { seed, ..RansacParams::default() };
+        let opts = RefineOptions { pixel_sigma: 0.5, ..RefineOptions::default() };
+        let s = solve(camera, &scene.pixels, &scene.points, &params, &opts).expect("solution");
+        let e = error(&s.pose, &scene.pose);
+        let nees = (e.transpose() * s.covariance.try_inverse().unwrap() * e)[(0, 0)];
+        let wrong = (0..truth.len()).filter(|&i| truth[i] != s.inliers[i]).count();
+        println!(
+            "solve {:.0}% outliers: {} inliers ({wrong} misclassified), position error {:.2} m \
+             (sigma {:.2} m), rotation {:.2e} rad, NEES {nees:.1}, rms {:.2} px, {} + {} iterations",
+            share * 100.0,
+            s.n_inliers,
+            e.fixed_rows::<3>(3).norm(),
+            s.position_covariance().trace().sqrt(),
+            e.fixed_rows::<3>(0).norm(),
+            s.rms_px,
+            s.ransac_iterations,
+            s.refine_iterations
+        );
+        assert!(wrong <= 1, "{wrong} misclassified");
+        assert!(nees < 25.0, "{nees}"); // chi2(6) 99.98% quantile
+        assert_eq!(s.residuals_px.len(), truth.len());
+        assert!((s.rms_px - 0.5 * 2f64.sqrt()).abs() < 0.2, "{}", s.rms_px);
+    }
+
+    #[test]
+    fn solve_end_to_end() {
+        let mut camera = CameraModel::from_fov(1024, 768, 60.0);
+        camera.distortion = Distortion { k1: -0.2, k2: 0.05, p1: 0.001, p2: -0.0005, k3: 0.0 };
+        for (seed, share) in [(11, 0.3), (12, 0.5)] {
+            solve_case(seed, share, &camera, 5000.0);
+        }
+        let narrow = CameraModel::from_fov(1024, 768, 32.0);
+        for (seed, share) in [(13, 0.3), (14, 0.6)] {
+            solve_case(seed, share, &narrow, 30_000.0);
+        }
+        assert!(solve(&narrow, &[], &[], &RansacParams::default(), &RefineOptions::default()).is_none());
+    }
+
+    /// `cargo test -p trn-vision --release -- --ignored --nocapture`
+    #[test]
+    #[ignore]
+    fn timing_solve_and_refine() {
+        let camera = CameraModel::from_fov(1024, 768, 32.0);
+        let mut rng = Rng::new(15);
+        for n in [50, 100, 200] {
+            let cases: Vec<_> = (0..50)
+                .map(|_| {
+                    let mut scene = nadir_scene(&mut rng, &camera, 30_000.0, n, 500.0, 5.0);
+                    add_noise(&mut rng, &mut scene.pixels, 0.5);
+                    add_outliers(&mut rng, &camera, &mut scene.pixels, 0.3);
+                    scene
+                })
+                .collect();
+            let (params, opts) = (RansacParams::default(), RefineOptions::default());
+            let reps = 10;
+            let start = std::time::Instant::now();
+            for _ in 0..reps {
+                for s in &cases {
+                    let r = ransac_p3p(&camera, &s.pixels, &s.points, &params).unwrap();
+                    std::hint::black_box(r);
+                }
+            }
+            let ransac_ms = start.elapsed().as_secs_f64() * 1e3 / (reps * cases.len()) as f64;
+            let start = std::time::Instant::now();
+            for _ in 0..reps {
+                for s in &cases {
+                    let r = solve(&camera, &s.pixels, &s.points, &params, &opts).unwrap();
+                    std::hint::black_box(r);
+                }
+            }
+            let solve_ms = start.elapsed().as_secs_f64() * 1e3 / (reps * cases.len()) as f64;
+            println!(
+                "{n} matches, 30% outliers: ransac_p3p {ransac_ms:.3} ms, solve {solve_ms:.3} ms per call"
+            );
+        }
+    }
+}

@@ -647,6 +647,14 @@ fn build_group(
     // One set of GDAL/PROJ handles per thread: opening them costs milliseconds.
     let workers: Vec<Mutex<Option<Worker>>> =
         (0..rayon::current_num_threads().max(1)).map(|_| Mutex::new(None)).collect();
+    // A mosaic's VRT reads its files' blocks, of sizes unknown here: GDAL's default then.
+    let _cache = (g.files.len() == 1)
+        .then(|| {
+            let margin0 = plan_for(0).map(level_margin).unwrap_or(0);
+            pyramid::ortho_cache_bytes(&g.path, tile_dims(0).1 + 2 * margin0, workers.len())
+        })
+        .flatten()
+        .map(pyramid::CacheLimit::new);
     for (p, &(w, h)) in sizes.iter().enumerate() {
         let plan = plan_for(p);
         let next = if p < top {
@@ -654,13 +662,7 @@ fn build_group(
         } else {
             None
         };
-        let margin = plan
-            .map(|l| {
-                (l.select.win_w.max(l.select.win_h) as f64 * 0.75).ceil() as usize
-                    + l.select.search_radius
-                    + 4
-            })
-            .unwrap_or(0);
+        let margin = plan.map(level_margin).unwrap_or(0);
         let tiles = tiles_of(p);
         let results: Vec<Result<(Vec<Template>, usize, usize)>> = tiles
             .par_iter()
@@ -726,6 +728,11 @@ fn build_group(
     }
     bar.finish_and_clear();
     Ok((templates, rejects.into_inner().unwrap_or_default(), candidates))
+}
+
+/// Pixels a tile's window reaches past its core on each side.
+fn level_margin(l: LevelPlan) -> usize {
+    (l.select.win_w.max(l.select.win_h) as f64 * 0.75).ceil() as usize + l.select.search_radius + 4
 }
 
 fn crop_cols(lum: &[f32], valid: &[u8], w: usize, nw: usize, rows: usize) -> (Vec<f32>, Vec<u8>) {

@@ -161,6 +161,58 @@ impl OrthoReader {
     }
 }
 
+/// GDAL block cache that level 0 needs so that no ortho block is decoded twice:
+/// per worker (each has its own dataset), the block rows under one row of
+/// tile windows of `window_h` rows plus the next, across the full width, for
+/// every band (a pixel-interleaved file caches all bands when one is read).
+/// `None` when the file cannot be opened (reading reports that later).
+pub fn ortho_cache_bytes(path: &Path, window_h: usize, workers: usize) -> Option<usize> {
+    let ds = crate::source::open(path).ok()?;
+    let (width, _) = ds.raster_size();
+    let mut bytes_per_px = 0usize;
+    let mut block_h = 1usize;
+    for b in 1..=ds.raster_count() {
+        let band = ds.rasterband(b).ok()?;
+        bytes_per_px += band.band_type().bytes() as usize;
+        block_h = block_h.max(band.block_size().1);
+    }
+    let rows = (window_h.div_ceil(block_h) + 2) * block_h;
+    Some(workers.max(1) * rows * width * bytes_per_px)
+}
+
+/// Lowers GDAL's block cache for the life of the guard (and restores it), unless
+/// the user set `GDAL_CACHEMAX`. GDAL's default (5% of memory) would keep every
+/// decoded block of an ortho: hundreds of megabytes of fresh pages, each
+/// faulted in and zeroed by the kernel, where a few block rows are ever reused.
+pub struct CacheLimit(Option<i64>);
+
+impl CacheLimit {
+    pub fn new(bytes: usize) -> Self {
+        let user_set = gdal::config::get_config_option("GDAL_CACHEMAX", "").map(|v| !v.is_empty());
+        if user_set.unwrap_or(true) {
+            return Self(None);
+        }
+        // At least 32 MB: the DEM and small rasters share the cache.
+        let want = bytes.max(32 << 20) as i64;
+        // SAFETY: plain getters/setters of GDAL's global cache size.
+        let before = unsafe { gdal_sys::GDALGetCacheMax64() };
+        if want >= before {
+            return Self(None);
+        }
+        unsafe { gdal_sys::GDALSetCacheMax64(want) };
+        Self(Some(before))
+    }
+}
+
+impl Drop for CacheLimit {
+    fn drop(&mut self) {
+        if let Some(before) = self.0 {
+            // SAFETY: as above.
+            unsafe { gdal_sys::GDALSetCacheMax64(before) };
+        }
+    }
+}
+
 /// Reusable buffers of one reader.
 #[derive(Default)]
 struct Scratch {

@@ -223,8 +223,9 @@ fn measures_into(img: &LumWindow, p: &SelectParams, sc: &mut Scratch) {
         }
         let k0 = (y / s) * bw;
         let block = |src: &[f32], dst: &mut [f32]| {
-            for (d, c) in dst[k0..k0 + bw].iter_mut().zip(src.chunks_exact(s)) {
-                *d += c.iter().sum::<f32>();
+            for (d, c) in dst[k0..k0 + bw].iter_mut().zip(src.chunks_exact(GRID_STRIDE)) {
+                let c: &[f32; GRID_STRIDE] = c.try_into().expect("chunks are GRID_STRIDE long");
+                *d += c[0] + c[1] + c[2] + c[3];
             }
         };
         block(pxx, bxx);
@@ -387,7 +388,22 @@ impl Patch {
         let (sx0, sy0) = (sx0 as usize, sy0 as usize);
         // Eight independent lanes: the compiler vectorises the sum.
         let mut lanes = [0f32; 8];
-        for r in 0..self.win_h {
+        if self.win_w == 16 {
+            // The usual coarse template: rows of two whole lanes, unrolled (the
+            // same sums in the same order as below).
+            for (r, t) in self.values.chunks_exact(16).enumerate() {
+                let t: &[f32; 16] = t.try_into().expect("rows are 16 long");
+                let s: &[f32; 16] =
+                    img.lum[(sy0 + r) * img.width + sx0..][..16].try_into().expect("rows are 16 long");
+                for k in 0..8 {
+                    lanes[k] += t[k] * s[k];
+                }
+                for k in 0..8 {
+                    lanes[k] += t[8 + k] * s[8 + k];
+                }
+            }
+        }
+        for r in 0..if self.win_w == 16 { 0 } else { self.win_h } {
             let srow = &img.lum[(sy0 + r) * img.width + sx0..][..self.win_w];
             let trow = &self.values[r * self.win_w..(r + 1) * self.win_w];
             let (tc, sc) = (trow.chunks_exact(8), srow.chunks_exact(8));

@@ -222,12 +222,7 @@ fn measures_into(img: &LumWindow, p: &SelectParams, sc: &mut Scratch) {
             badrow[x] = if vrow[x] == 0 { INVALID } else { sat };
         }
         let k0 = (y / s) * bw;
-        let block = |src: &[f32], dst: &mut [f32]| {
-            for (d, c) in dst[k0..k0 + bw].iter_mut().zip(src.chunks_exact(GRID_STRIDE)) {
-                let c: &[f32; GRID_STRIDE] = c.try_into().expect("chunks are GRID_STRIDE long");
-                *d += c[0] + c[1] + c[2] + c[3];
-            }
-        };
+        let block = |src: &[f32], dst: &mut [f32]| block_sums_add(src, &mut dst[k0..k0 + bw]);
         block(pxx, bxx);
         block(pyy, byy);
         block(pxy, bxy);
@@ -268,6 +263,47 @@ fn measures_into(img: &LumWindow, p: &SelectParams, sc: &mut Scratch) {
         m.usable[i] = sbad[i] < INVALID - 0.5 && sbad[i] / bad_area <= p.max_saturated;
     }
     (m.stride, m.grid_w, m.grid_h, m.win_blocks_w, m.win_blocks_h) = (s, bw, bh, kw, kh);
+}
+
+/// Adds the sums of consecutive groups of four `src` values to `dst`, each
+/// summed left to right: `dst[j] += ((s[4j] + s[4j+1]) + s[4j+2]) + s[4j+3]`.
+fn block_sums_add(src: &[f32], dst: &mut [f32]) {
+    const _: () = assert!(GRID_STRIDE == 4);
+    let n = dst.len();
+    let src = &src[..4 * n];
+    #[cfg(not(target_arch = "x86_64"))]
+    let done = 0;
+    #[cfg(target_arch = "x86_64")]
+    let done = {
+        use std::arch::x86_64::*;
+        // Four blocks at a time: a 4x4 transpose puts each block in a lane, and
+        // three vector additions give the same sums as the scalar loop below.
+        for (d, c) in dst.chunks_exact_mut(4).zip(src.chunks_exact(16)) {
+            let (d, c): (&mut [f32; 4], &[f32; 16]) =
+                (d.try_into().expect("4 blocks"), c.try_into().expect("16 values"));
+            // SAFETY: SSE2 is part of x86_64; the unaligned loads and the store
+            // stay inside the fixed-size arrays above.
+            unsafe {
+                let p = c.as_ptr();
+                let (r0, r1, r2, r3) = (
+                    _mm_loadu_ps(p),
+                    _mm_loadu_ps(p.add(4)),
+                    _mm_loadu_ps(p.add(8)),
+                    _mm_loadu_ps(p.add(12)),
+                );
+                let (t0, t1) = (_mm_unpacklo_ps(r0, r1), _mm_unpacklo_ps(r2, r3));
+                let (t2, t3) = (_mm_unpackhi_ps(r0, r1), _mm_unpackhi_ps(r2, r3));
+                let (c0, c1) = (_mm_movelh_ps(t0, t1), _mm_movehl_ps(t1, t0));
+                let (c2, c3) = (_mm_movelh_ps(t2, t3), _mm_movehl_ps(t3, t2));
+                let sum = _mm_add_ps(_mm_add_ps(_mm_add_ps(c0, c1), c2), c3);
+                _mm_storeu_ps(d.as_mut_ptr(), _mm_add_ps(_mm_loadu_ps(d.as_ptr()), sum));
+            }
+        }
+        n / 4 * 4
+    };
+    for (d, c) in dst[done..].iter_mut().zip(src[4 * done..].chunks_exact(4)) {
+        *d += c[0] + c[1] + c[2] + c[3];
+    }
 }
 
 /// 2x2 mean of a window (for the coarse uniqueness pass).
@@ -584,6 +620,23 @@ mod tests {
                 ((s >> 33) % 200) as f32 + 20.0
             })
             .collect()
+    }
+
+    #[test]
+    fn block_sums_match_the_scalar_order() {
+        for n in [0, 1, 3, 4, 5, 9, 17] {
+            let src: Vec<f32> = noise(4 * n, 1, 7).iter().map(|v| v * 0.37 - 41.0).collect();
+            let mut got: Vec<f32> = (0..n).map(|j| j as f32 * 0.1).collect();
+            let mut want = got.clone();
+            block_sums_add(&src, &mut got);
+            for (j, w) in want.iter_mut().enumerate() {
+                *w += src[4 * j] + src[4 * j + 1] + src[4 * j + 2] + src[4 * j + 3];
+            }
+            assert_eq!(
+                got.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                want.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
+            );
+        }
     }
 
     #[test]

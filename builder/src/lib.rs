@@ -622,7 +622,7 @@ fn build_group(
             }
             n * cell
         };
-        (round(cw, 1024), round(ch, 256))
+        (round(cw, 1024), round(ch, 512))
     };
     let tiles_of = |p: usize| -> Vec<(usize, usize, usize, usize)> {
         let (w, h) = sizes[p];

@@ -239,6 +239,16 @@ fn main() -> ExitCode {
     // Keep freed memory mapped: builds free and re-allocate megabyte buffers per
     // tile, and handing them back to the kernel cost ~15% in page faults.
     unsafe { libmimalloc_sys::mi_option_set(MI_OPTION_PURGE_DELAY, -1) };
+    // No transparent huge pages for this process: the kernel zeroes a whole
+    // 2 MB page on its first touch, and on the benchmark machine those fresh
+    // huge pages (the pyramid levels, mostly) cost ~12% of a build in
+    // clear_page, where 4 KB pages come from the kernel's recently freed ones.
+    // (mimalloc's own allow_thp option is read before main runs.)
+    #[cfg(target_os = "linux")]
+    // SAFETY: prctl with PR_SET_THP_DISABLE only sets a flag of this process.
+    unsafe {
+        libc::prctl(libc::PR_SET_THP_DISABLE, 1, 0, 0, 0);
+    }
     tracing_subscriber::fmt()
         .with_env_filter(EnvFilter::try_from_env("TRN_LOG").unwrap_or_else(|_| EnvFilter::new("info")))
         .with_writer(std::io::stderr)

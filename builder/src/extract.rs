@@ -135,13 +135,14 @@ pub fn extract(
             return Err(Reject::OutsideWindow);
         }
     }
-    let mut pixels = Vec::with_capacity(size * size);
-    for row in 0..size {
+    let mut pixels = vec![0u8; size * size];
+    let (lum, valid) = (&win.lum[..], &win.valid[..]);
+    for (row, out) in pixels.chunks_exact_mut(size).enumerate() {
         let mut q = origin + step_row * row as f64;
-        for _ in 0..size {
-            let v = bilinear_inside(win, q.x, q.y).ok_or(Reject::Nodata)?;
+        for o in out {
+            let v = bilinear_inside(lum, valid, win.width, q.x, q.y).ok_or(Reject::Nodata)?;
             // v is in 0..=255: adding a half and truncating rounds it.
-            pixels.push((v + 0.5) as u8);
+            *o = (v + 0.5) as u8;
             q += step_col;
         }
     }
@@ -173,21 +174,25 @@ pub fn extract(
     Ok(Template { footprint, ..tmp })
 }
 
-/// Bilinear sample at a position known to lie inside the window (with its
-/// right and lower neighbours); `None` on nodata.
-fn bilinear_inside(win: &Window, x: f64, y: f64) -> Option<f64> {
-    // Truncation is floor for non-negative values (and avoids a libm call).
-    let (ix, iy) = (x as usize, y as usize);
+/// Bilinear sample at a position known to lie inside the window (`width`
+/// wide, with its right and lower neighbours); `None` on nodata.
+#[inline(always)]
+fn bilinear_inside(lum: &[f32], valid: &[u8], width: usize, x: f64, y: f64) -> Option<f64> {
+    // Truncation is floor for non-negative values (and avoids a libm call);
+    // through i32, a cheaper conversion than to usize (windows are far smaller).
+    let (ix, iy) = (x as i32 as usize, y as i32 as usize);
     let (tx, ty) = (x - ix as f64, y - iy as f64);
-    let i = iy * win.width + ix;
-    let j = i + win.width;
-    if win.valid[i] & win.valid[i + 1] & win.valid[j] & win.valid[j + 1] == 0 {
+    let i = iy * width + ix;
+    let j = i + width;
+    // Pairs of neighbours as slices: one bounds check per pair.
+    let (v0, v1) = (&valid[i..i + 2], &valid[j..j + 2]);
+    if v0[0] & v0[1] & v1[0] & v1[1] == 0 {
         return None;
     }
-    let l = &win.lum;
+    let (l0, l1) = (&lum[i..i + 2], &lum[j..j + 2]);
     Some(
-        (l[i] as f64 * (1.0 - tx) + l[i + 1] as f64 * tx) * (1.0 - ty)
-            + (l[j] as f64 * (1.0 - tx) + l[j + 1] as f64 * tx) * ty,
+        (l0[0] as f64 * (1.0 - tx) + l0[1] as f64 * tx) * (1.0 - ty)
+            + (l1[0] as f64 * (1.0 - tx) + l1[1] as f64 * tx) * ty,
     )
 }
 

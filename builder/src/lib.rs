@@ -541,6 +541,11 @@ struct Worker {
     ortho: OrthoReader,
     dem: DemSampler,
     to_wgs: CoordTransform,
+    /// Buffers reused tile after tile: no allocation and no fresh pages per tile.
+    win: Window,
+    select: select::Scratch,
+    down_lum: Vec<f32>,
+    down_valid: Vec<u8>,
 }
 
 // SAFETY: GDAL datasets and OGR coordinate transformations may move between
@@ -561,6 +566,10 @@ impl Worker {
             ortho: OrthoReader::open(&g.path, &g.lum)?,
             dem: DemSampler::open(dems)?,
             to_wgs: CoordTransform::new(&srs, &wgs).map_err(err)?,
+            win: Window::default(),
+            select: select::Scratch::default(),
+            down_lum: Vec::new(),
+            down_valid: Vec::new(),
         })
     }
 }
@@ -630,7 +639,7 @@ fn build_group(
             }
             n * cell
         };
-        (round(cw, 1024), round(ch, 256))
+        (round(cw, 1024), round(ch, 512))
     };
     let tiles_of = |p: usize| -> Vec<(usize, usize, usize, usize)> {
         let (w, h) = sizes[p];
@@ -664,6 +673,14 @@ fn build_group(
     // One set of GDAL/PROJ handles per thread: opening them costs milliseconds.
     let workers: Vec<Mutex<Option<Worker>>> =
         (0..rayon::current_num_threads().max(1)).map(|_| Mutex::new(None)).collect();
+    // A mosaic's VRT reads its files' blocks, of sizes unknown here: GDAL's default then.
+    let _cache = (g.files.len() == 1)
+        .then(|| {
+            let margin0 = plan_for(0).map(level_margin).unwrap_or(0);
+            pyramid::ortho_cache_bytes(&g.path, tile_dims(0).1 + 2 * margin0, workers.len())
+        })
+        .flatten()
+        .map(pyramid::CacheLimit::new);
     for (p, &(w, h)) in sizes.iter().enumerate() {
         let plan = plan_for(p);
         let next = if p < top {
@@ -671,13 +688,7 @@ fn build_group(
         } else {
             None
         };
-        let margin = plan
-            .map(|l| {
-                (l.select.win_w.max(l.select.win_h) as f64 * 0.75).ceil() as usize
-                    + l.select.search_radius
-                    + 4
-            })
-            .unwrap_or(0);
+        let margin = plan.map(level_margin).unwrap_or(0);
         let tiles = tiles_of(p);
         let results: Vec<Result<(Vec<Template>, usize, usize)>> = tiles
             .par_iter()
@@ -690,29 +701,40 @@ fn build_group(
                 if guard.is_none() {
                     *guard = Some(Worker::new(g, dems)?);
                 }
-                let worker = guard.as_ref().expect("worker was just created");
+                let worker = guard.as_mut().expect("worker was just created");
                 let (wx0, wy0) = (x0 as isize - margin as isize, y0 as isize - margin as isize);
                 let (ww, wh) = (x1 - x0 + 2 * margin, y1 - y0 + 2 * margin);
-                let win = match &prev {
-                    None => worker.ortho.read(wx0, wy0, ww, wh)?,
-                    Some(f) => f.read(wx0, wy0, ww, wh)?,
+                let mut win = std::mem::take(&mut worker.win);
+                match &prev {
+                    None => worker.ortho.read_into(wx0, wy0, ww, wh, &mut win)?,
+                    Some(f) => f.read_into(wx0, wy0, ww, wh, &mut win)?,
                 };
                 if let Some(next) = &next {
                     let (cw, ch) = ((x1 - x0) & !1, (y1 - y0) & !1);
-                    let (lum, valid) = pyramid::downsample2(&win, margin, margin, cw, ch);
                     let nw = (cw / 2).min(next.width.saturating_sub(x0 / 2));
                     if nw > 0 && ch > 0 {
                         let rows = (ch / 2).min(next.height.saturating_sub(y0 / 2));
-                        let (lum, valid) = crop_cols(&lum, &valid, cw / 2, nw, rows);
-                        next.write(x0 / 2, y0 / 2, nw, &lum, &valid)?;
+                        let (lum, valid) = (&mut worker.down_lum, &mut worker.down_valid);
+                        pyramid::downsample2_into(&win, margin, margin, nw, rows, lum, valid);
+                        next.write(x0 / 2, y0 / 2, nw, lum, valid)?;
                     }
                 }
+                let mut scratch = std::mem::take(&mut worker.select);
                 let (mut t, c) = match plan {
-                    Some(l) => {
-                        tile_templates(&win, margin, (x1 - x0, y1 - y0), &l, g, worker, opts, &rejects)
-                    }
+                    Some(l) => tile_templates(
+                        &win,
+                        margin,
+                        (x1 - x0, y1 - y0),
+                        &l,
+                        g,
+                        worker,
+                        &mut scratch,
+                        opts,
+                        &rejects,
+                    ),
                     None => (Vec::new(), 0),
                 };
+                (worker.win, worker.select) = (win, scratch);
                 let n = t.len();
                 if let Some(tx) = sink {
                     if !t.is_empty() {
@@ -745,14 +767,9 @@ fn build_group(
     Ok((templates, rejects.into_inner().unwrap_or_default(), candidates))
 }
 
-fn crop_cols(lum: &[f32], valid: &[u8], w: usize, nw: usize, rows: usize) -> (Vec<f32>, Vec<u8>) {
-    let mut l = Vec::with_capacity(nw * rows);
-    let mut v = Vec::with_capacity(nw * rows);
-    for r in 0..rows {
-        l.extend_from_slice(&lum[r * w..r * w + nw]);
-        v.extend_from_slice(&valid[r * w..r * w + nw]);
-    }
-    (l, v)
+/// Pixels a tile's window reaches past its core on each side.
+fn level_margin(l: LevelPlan) -> usize {
+    (l.select.win_w.max(l.select.win_h) as f64 * 0.75).ceil() as usize + l.select.search_radius + 4
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -763,12 +780,13 @@ fn tile_templates(
     plan: &LevelPlan,
     g: &OrthoGroup,
     worker: &Worker,
+    scratch: &mut select::Scratch,
     opts: &BuildOptions,
     rejects: &Mutex<HashMap<Reject, usize>>,
 ) -> (Vec<Template>, usize) {
     let img = LumWindow { width: win.width, height: win.height, lum: &win.lum, valid: &win.valid };
     let core = Core { x0: margin, x1: margin + core_size.0, y0: margin, y1: margin + core_size.1 };
-    let cands = select::select(&img, &plan.select, core);
+    let cands = select::select_with(&img, &plan.select, core, scratch);
     let scale = 2f64.powi(plan.pyramid_level as i32);
     let geo = WindowGeo { to_crs: g.info.to_crs, scale, to_wgs: &worker.to_wgs };
     let ep = ExtractParams {

@@ -43,48 +43,71 @@ pub struct Candidate {
 /// Box sums over a `win_w x win_h` window centred at each pixel (top-left at
 /// `x - win_w/2`), with running sums; entries whose window leaves the image are `NAN`.
 pub fn box_sum(src: &[f32], width: usize, height: usize, win_w: usize, win_h: usize) -> Vec<f32> {
-    let mut out = vec![f32::NAN; width * height];
+    let mut out = Vec::new();
+    box_sum_into(src, width, height, win_w, win_h, &mut out, &mut Vec::new(), &mut Vec::new());
+    out
+}
+
+/// [`box_sum`] into `out`, with `horiz` and `acc` as reused scratch.
+#[allow(clippy::too_many_arguments)]
+fn box_sum_into(
+    src: &[f32],
+    width: usize,
+    height: usize,
+    win_w: usize,
+    win_h: usize,
+    out: &mut Vec<f32>,
+    horiz: &mut Vec<f64>,
+    acc: &mut Vec<f64>,
+) {
+    out.clear();
+    out.resize(width * height, f32::NAN);
     if win_w > width || win_h > height {
-        return out;
+        return;
     }
     let (hw, hh) = (win_w / 2, win_h / 2);
-    // f64 accumulators: no drift along long rows and columns.
-    let mut horiz = vec![f64::NAN; width * height];
+    // f64 accumulators: no drift along long rows and columns. Only the entries
+    // a row's running sum writes are ever read below.
+    horiz.resize(width * height, 0.0);
     for y in 0..height {
         let row = &src[y * width..(y + 1) * width];
         let out_row = &mut horiz[y * width..(y + 1) * width];
-        let mut acc: f64 = row[..win_w].iter().map(|&v| v as f64).sum();
-        out_row[hw] = acc;
+        let mut a: f64 = row[..win_w].iter().map(|&v| v as f64).sum();
+        out_row[hw] = a;
         for x0 in 1..=(width - win_w) {
-            acc += row[x0 + win_w - 1] as f64 - row[x0 - 1] as f64;
-            out_row[x0 + hw] = acc;
+            a += row[x0 + win_w - 1] as f64 - row[x0 - 1] as f64;
+            out_row[x0 + hw] = a;
         }
     }
-    let mut acc = vec![0f64; width];
+    let cols = hw..hw + width - win_w + 1;
+    acc.clear();
+    acc.resize(width, 0.0);
     for y in 0..win_h {
-        for (a, h) in acc.iter_mut().zip(&horiz[y * width..(y + 1) * width]) {
+        for (a, h) in acc[cols.clone()].iter_mut().zip(&horiz[y * width + cols.start..y * width + cols.end]) {
             *a += h;
         }
     }
     let emit = |y: usize, acc: &[f64], out: &mut [f32]| {
-        for (o, a) in out[y * width..(y + 1) * width].iter_mut().zip(acc) {
+        let row = &mut out[y * width..(y + 1) * width];
+        for (o, a) in row[cols.clone()].iter_mut().zip(&acc[cols.clone()]) {
             *o = *a as f32;
         }
     };
-    emit(hh, &acc, &mut out);
+    emit(hh, acc, out);
     for y0 in 1..=(height - win_h) {
         let (add, sub) = ((y0 + win_h - 1) * width, (y0 - 1) * width);
-        for x in 0..width {
-            acc[x] += horiz[add + x] - horiz[sub + x];
+        let (ha, hs) = (&horiz[add + cols.start..add + cols.end], &horiz[sub + cols.start..sub + cols.end]);
+        for ((a, &p), &m) in acc[cols.clone()].iter_mut().zip(ha).zip(hs) {
+            *a += p - m;
         }
-        emit(y0 + hh, &acc, &mut out);
+        emit(y0 + hh, acc, out);
     }
-    out
 }
 
 /// Selection measures of a window on a grid of `stride x stride` pixel blocks.
 /// Entry `(bx, by)` describes the template window centred at pixel
 /// [`Measures::centre`]`(bx, by)`.
+#[derive(Default)]
 pub struct Measures {
     pub stride: usize,
     pub grid_w: usize,
@@ -113,48 +136,83 @@ impl Measures {
 pub const GRID_STRIDE: usize = 4;
 
 pub fn measures(img: &LumWindow, p: &SelectParams) -> Measures {
+    let mut scratch = Scratch::default();
+    measures_into(img, p, &mut scratch);
+    scratch.m
+}
+
+/// Buffers of [`select_with`], reused window after window: no allocation, no
+/// zeroed fresh pages per tile.
+#[derive(Default)]
+pub struct Scratch {
+    m: Measures,
+    /// Per-block sums: gx^2, gy^2, gx gy, value, value^2, bad.
+    blocks: [Vec<f32>; 6],
+    /// Box sums of `blocks`.
+    sums: [Vec<f32>; 6],
+    gx: Vec<f32>,
+    gy: Vec<f32>,
+    prods: [Vec<f32>; 4],
+    badrow: Vec<f32>,
+    horiz: Vec<f64>,
+    acc: Vec<f64>,
+    half: Vec<f32>,
+    valid_half: Vec<u8>,
+    coarse_sums: WindowSums,
+    cells: Vec<Vec<(f32, f32, usize, usize)>>,
+}
+
+fn measures_into(img: &LumWindow, p: &SelectParams, sc: &mut Scratch) {
     let s = GRID_STRIDE;
     let (w, h) = (img.width, img.height);
     let (bw, bh) = (w / s, h / s);
     let nb = bw * bh;
     // Invalid pixels weigh INVALID, saturated ones 1: one sum tells both.
     const INVALID: f32 = 4096.0;
-    let mut bxx = vec![0f32; nb];
-    let mut byy = vec![0f32; nb];
-    let mut bxy = vec![0f32; nb];
-    let mut b1 = vec![0f32; nb];
-    let mut b2 = vec![0f32; nb];
-    let mut bbad = vec![0f32; nb];
+    for b in sc.blocks.iter_mut() {
+        b.clear();
+        b.resize(nb, 0.0);
+    }
+    let [bxx, byy, bxy, b1, b2, bbad] = &mut sc.blocks;
     // Row by row: plain element-wise passes (vectorised), then 4-pixel block sums.
     let used_w = bw * s;
-    let mut gx = vec![0f32; used_w];
-    let mut gy = vec![0f32; used_w];
-    let mut prods = [vec![0f32; used_w], vec![0f32; used_w], vec![0f32; used_w], vec![0f32; used_w]];
-    let mut badrow = vec![0f32; used_w];
-    for y in 0..bh * s {
+    for v in [&mut sc.gx, &mut sc.gy, &mut sc.badrow].into_iter().chain(sc.prods.iter_mut()) {
+        v.resize(used_w, 0.0);
+    }
+    // Slices of one known length: no bounds checks in the loops below.
+    let (gx, gy, badrow) = (&mut sc.gx[..used_w], &mut sc.gy[..used_w], &mut sc.badrow[..used_w]);
+    let [pxx, pyy, pxy, p2] = &mut sc.prods;
+    let (pxx, pyy, pxy, p2) = (&mut pxx[..used_w], &mut pyy[..used_w], &mut pxy[..used_w], &mut p2[..used_w]);
+    // (No rows when the window is narrower than a block.)
+    let rows = if used_w == 0 { 0 } else { bh * s };
+    for y in 0..rows {
         let row = &img.lum[y * w..y * w + used_w];
         let vrow = &img.valid[y * w..y * w + used_w];
         // Central differences; zero on the window's border (never a candidate's window).
-        gx.iter_mut().for_each(|g| *g = 0.0);
-        gy.iter_mut().for_each(|g| *g = 0.0);
-        if y > 0 && y + 1 < h {
+        if y == 0 || y + 1 >= h {
+            gx.fill(0.0);
+            gy.fill(0.0);
+        } else {
             let (up, down) =
                 (&img.lum[(y - 1) * w..(y - 1) * w + used_w], &img.lum[(y + 1) * w..(y + 1) * w + used_w]);
-            for x in 0..used_w {
-                gy[x] = 0.5 * (down[x] - up[x]);
+            for ((g, &d), &u) in gy.iter_mut().zip(down).zip(up) {
+                *g = 0.5 * (d - u);
             }
             // The full row: the gradient at the last used pixel needs its right neighbour.
             let full = &img.lum[y * w..(y + 1) * w];
             let end = used_w.min(w - 1);
-            for x in 1..end {
-                gx[x] = 0.5 * (full[x + 1] - full[x - 1]);
+            gx[0] = 0.0;
+            if end > 1 {
+                for (g, pair) in gx[1..end].iter_mut().zip(full.windows(3)) {
+                    *g = 0.5 * (pair[2] - pair[0]);
+                }
             }
+            gx[end.max(1)..].fill(0.0);
             gy[0] = 0.0;
             if end < used_w {
                 gy[used_w - 1] = 0.0;
             }
         }
-        let [pxx, pyy, pxy, p2] = &mut prods;
         for x in 0..used_w {
             pxx[x] = gx[x] * gx[x];
             pyy[x] = gy[x] * gy[x];
@@ -164,33 +222,33 @@ pub fn measures(img: &LumWindow, p: &SelectParams) -> Measures {
             badrow[x] = if vrow[x] == 0 { INVALID } else { sat };
         }
         let k0 = (y / s) * bw;
-        let block = |src: &[f32], dst: &mut [f32]| {
-            for (d, c) in dst[k0..k0 + bw].iter_mut().zip(src.chunks_exact(s)) {
-                *d += c.iter().sum::<f32>();
-            }
-        };
-        block(&prods[0], &mut bxx);
-        block(&prods[1], &mut byy);
-        block(&prods[2], &mut bxy);
-        block(row, &mut b1);
-        block(&prods[3], &mut b2);
-        block(&badrow, &mut bbad);
+        let block = |src: &[f32], dst: &mut [f32]| block_sums_add(src, &mut dst[k0..k0 + bw]);
+        block(pxx, bxx);
+        block(pyy, byy);
+        block(pxy, bxy);
+        block(row, b1);
+        block(p2, b2);
+        block(badrow, bbad);
     }
     let kw = (p.win_w as f64 / s as f64).round().max(1.0) as usize;
     let kh = (p.win_h as f64 / s as f64).round().max(1.0) as usize;
     let area = (kw * kh * s * s) as f32;
-    let sxx = box_sum(&bxx, bw, bh, kw, kh);
-    let syy = box_sum(&byy, bw, bh, kw, kh);
-    let sxy = box_sum(&bxy, bw, bh, kw, kh);
-    let s1 = box_sum(&b1, bw, bh, kw, kh);
-    let s2 = box_sum(&b2, bw, bh, kw, kh);
-    // One block more on each side (same centre): bilinear resampling and the
-    // exact template window reach a little past the measured window.
-    let sbad = box_sum(&bbad, bw, bh, kw + 2, kh + 2);
+    for (k, (src, out)) in sc.blocks.iter().zip(sc.sums.iter_mut()).enumerate() {
+        // One block more on each side (same centre) for the bad-pixel count:
+        // bilinear resampling and the exact template window reach a little
+        // past the measured window.
+        let (ww, wh) = if k == 5 { (kw + 2, kh + 2) } else { (kw, kh) };
+        box_sum_into(src, bw, bh, ww, wh, out, &mut sc.horiz, &mut sc.acc);
+    }
+    let [sxx, syy, sxy, s1, s2, sbad] = &sc.sums;
     let bad_area = ((kw + 2) * (kh + 2) * s * s) as f32;
-    let mut shi_tomasi = vec![0f32; nb];
-    let mut contrast_std = vec![0f32; nb];
-    let mut usable = vec![false; nb];
+    let m = &mut sc.m;
+    m.shi_tomasi.clear();
+    m.shi_tomasi.resize(nb, 0.0);
+    m.contrast_std.clear();
+    m.contrast_std.resize(nb, 0.0);
+    m.usable.clear();
+    m.usable.resize(nb, false);
     for i in 0..nb {
         if sxx[i].is_nan() || sbad[i].is_nan() {
             continue;
@@ -200,37 +258,82 @@ pub fn measures(img: &LumWindow, p: &SelectParams) -> Measures {
         let lmin = 0.5 * (a + c) - (0.25 * (a - c) * (a - c) + b * b).sqrt();
         let mean = s1[i] / area;
         let var = (s2[i] / area - mean * mean).max(0.0);
-        shi_tomasi[i] = lmin;
-        contrast_std[i] = var.sqrt();
-        usable[i] = sbad[i] < INVALID - 0.5 && sbad[i] / bad_area <= p.max_saturated;
+        m.shi_tomasi[i] = lmin;
+        m.contrast_std[i] = var.sqrt();
+        m.usable[i] = sbad[i] < INVALID - 0.5 && sbad[i] / bad_area <= p.max_saturated;
     }
-    Measures {
-        stride: s,
-        grid_w: bw,
-        grid_h: bh,
-        win_blocks_w: kw,
-        win_blocks_h: kh,
-        shi_tomasi,
-        contrast_std,
-        usable,
+    (m.stride, m.grid_w, m.grid_h, m.win_blocks_w, m.win_blocks_h) = (s, bw, bh, kw, kh);
+}
+
+/// Adds the sums of consecutive groups of four `src` values to `dst`, each
+/// summed left to right: `dst[j] += ((s[4j] + s[4j+1]) + s[4j+2]) + s[4j+3]`.
+fn block_sums_add(src: &[f32], dst: &mut [f32]) {
+    const _: () = assert!(GRID_STRIDE == 4);
+    let n = dst.len();
+    let src = &src[..4 * n];
+    #[cfg(not(target_arch = "x86_64"))]
+    let done = 0;
+    #[cfg(target_arch = "x86_64")]
+    let done = {
+        use std::arch::x86_64::*;
+        // Four blocks at a time: a 4x4 transpose puts each block in a lane, and
+        // three vector additions give the same sums as the scalar loop below.
+        for (d, c) in dst.chunks_exact_mut(4).zip(src.chunks_exact(16)) {
+            let (d, c): (&mut [f32; 4], &[f32; 16]) =
+                (d.try_into().expect("4 blocks"), c.try_into().expect("16 values"));
+            // SAFETY: SSE2 is part of x86_64; the unaligned loads and the store
+            // stay inside the fixed-size arrays above.
+            unsafe {
+                let p = c.as_ptr();
+                let (r0, r1, r2, r3) = (
+                    _mm_loadu_ps(p),
+                    _mm_loadu_ps(p.add(4)),
+                    _mm_loadu_ps(p.add(8)),
+                    _mm_loadu_ps(p.add(12)),
+                );
+                let (t0, t1) = (_mm_unpacklo_ps(r0, r1), _mm_unpacklo_ps(r2, r3));
+                let (t2, t3) = (_mm_unpackhi_ps(r0, r1), _mm_unpackhi_ps(r2, r3));
+                let (c0, c1) = (_mm_movelh_ps(t0, t1), _mm_movehl_ps(t1, t0));
+                let (c2, c3) = (_mm_movelh_ps(t2, t3), _mm_movehl_ps(t3, t2));
+                let sum = _mm_add_ps(_mm_add_ps(_mm_add_ps(c0, c1), c2), c3);
+                _mm_storeu_ps(d.as_mut_ptr(), _mm_add_ps(_mm_loadu_ps(d.as_ptr()), sum));
+            }
+        }
+        n / 4 * 4
+    };
+    for (d, c) in dst[done..].iter_mut().zip(src[4 * done..].chunks_exact(4)) {
+        *d += c[0] + c[1] + c[2] + c[3];
     }
 }
 
 /// 2x2 mean of a window (for the coarse uniqueness pass).
 pub fn half_resolution(img: &LumWindow) -> (Vec<f32>, usize, usize) {
+    let mut out = Vec::new();
+    let (hw, hh) = half_resolution_into(img, &mut out);
+    (out, hw, hh)
+}
+
+fn half_resolution_into(img: &LumWindow, out: &mut Vec<f32>) -> (usize, usize) {
     let (hw, hh) = (img.width / 2, img.height / 2);
-    let mut out = vec![0f32; hw * hh];
+    out.resize(hw * hh, 0.0);
+    if hw == 0 {
+        return (hw, hh);
+    }
     for y in 0..hh {
-        let (r0, r1) = (&img.lum[2 * y * img.width..], &img.lum[(2 * y + 1) * img.width..]);
-        for x in 0..hw {
-            out[y * hw + x] = 0.25 * (r0[2 * x] + r0[2 * x + 1] + r1[2 * x] + r1[2 * x + 1]);
+        let (r0, r1) =
+            (&img.lum[2 * y * img.width..][..2 * hw], &img.lum[(2 * y + 1) * img.width..][..2 * hw]);
+        for ((o, a), b) in
+            out[y * hw..(y + 1) * hw].iter_mut().zip(r0.chunks_exact(2)).zip(r1.chunks_exact(2))
+        {
+            *o = 0.25 * (a[0] + a[1] + b[0] + b[1]);
         }
     }
-    (out, hw, hh)
+    (hw, hh)
 }
 
 /// Integral images of a window's values and squares: the sum and the sum of
 /// squares of any rectangle in O(1), for the NCC denominators.
+#[derive(Default)]
 pub struct WindowSums {
     stride: usize,
     s1: Vec<f64>,
@@ -239,9 +342,22 @@ pub struct WindowSums {
 
 impl WindowSums {
     pub fn new(img: &LumWindow) -> Self {
+        let mut sums = Self::default();
+        sums.compute(img);
+        sums
+    }
+
+    /// Recomputes the sums for `img`, reusing the buffers.
+    fn compute(&mut self, img: &LumWindow) {
         let stride = img.width + 1;
-        let mut s1 = vec![0f64; stride * (img.height + 1)];
-        let mut s2 = vec![0f64; stride * (img.height + 1)];
+        let Self { stride: st, s1, s2 } = self;
+        *st = stride;
+        for v in [&mut *s1, &mut *s2] {
+            v.resize(stride * (img.height + 1), 0.0);
+            // Row 0 and column 0 are zero; everything else is written below.
+            v[..stride].fill(0.0);
+            v.iter_mut().step_by(stride).for_each(|x| *x = 0.0);
+        }
         for y in 0..img.height {
             let (mut r1, mut r2) = (0f64, 0f64);
             let row = &img.lum[y * img.width..(y + 1) * img.width];
@@ -256,7 +372,6 @@ impl WindowSums {
                 cur2[x + 1] = above2[x + 1] + r2;
             }
         }
-        Self { stride, s1, s2 }
     }
 
     /// (sum, sum of squares) over `w x h` pixels from (x0, y0).
@@ -309,7 +424,22 @@ impl Patch {
         let (sx0, sy0) = (sx0 as usize, sy0 as usize);
         // Eight independent lanes: the compiler vectorises the sum.
         let mut lanes = [0f32; 8];
-        for r in 0..self.win_h {
+        if self.win_w == 16 {
+            // The usual coarse template: rows of two whole lanes, unrolled (the
+            // same sums in the same order as below).
+            for (r, t) in self.values.chunks_exact(16).enumerate() {
+                let t: &[f32; 16] = t.try_into().expect("rows are 16 long");
+                let s: &[f32; 16] =
+                    img.lum[(sy0 + r) * img.width + sx0..][..16].try_into().expect("rows are 16 long");
+                for k in 0..8 {
+                    lanes[k] += t[k] * s[k];
+                }
+                for k in 0..8 {
+                    lanes[k] += t[8 + k] * s[8 + k];
+                }
+            }
+        }
+        for r in 0..if self.win_w == 16 { 0 } else { self.win_h } {
             let srow = &img.lum[(sy0 + r) * img.width + sx0..][..self.win_w];
             let trow = &self.values[r * self.win_w..(r + 1) * self.win_w];
             let (tc, sc) = (trow.chunks_exact(8), srow.chunks_exact(8));
@@ -405,11 +535,18 @@ pub struct Core {
 
 /// Selects up to `per_cell` landmarks in each cell of the core.
 pub fn select(img: &LumWindow, p: &SelectParams, core: Core) -> Vec<Candidate> {
-    let m = measures(img, p);
-    let (half, hw, hh) = half_resolution(img);
-    let valid_half = vec![1u8; hw * hh];
-    let coarse_img = LumWindow { width: hw, height: hh, lum: &half, valid: &valid_half };
-    let coarse_sums = WindowSums::new(&coarse_img);
+    select_with(img, p, core, &mut Scratch::default())
+}
+
+/// [`select`] with reused buffers.
+pub fn select_with(img: &LumWindow, p: &SelectParams, core: Core, sc: &mut Scratch) -> Vec<Candidate> {
+    measures_into(img, p, sc);
+    let (hw, hh) = half_resolution_into(img, &mut sc.half);
+    // Entries already there are ones too.
+    sc.valid_half.resize(hw * hh, 1);
+    let Scratch { m, half, valid_half, coarse_sums, cells, .. } = sc;
+    let coarse_img = LumWindow { width: hw, height: hh, lum: half, valid: &valid_half[..hw * hh] };
+    coarse_sums.compute(&coarse_img);
     let coarse_p = SelectParams {
         win_w: (p.win_w / 2).max(2),
         win_h: (p.win_h / 2).max(2),
@@ -419,7 +556,8 @@ pub fn select(img: &LumWindow, p: &SelectParams, core: Core) -> Vec<Candidate> {
     // Block entries by the cell their centre falls in (cells of the core only).
     let cells_x = (core.x1 - core.x0).div_ceil(p.cell_w);
     let cells_y = (core.y1 - core.y0).div_ceil(p.cell_h);
-    let mut cells: Vec<Vec<(f32, f32, usize, usize)>> = vec![Vec::new(); cells_x * cells_y];
+    cells.iter_mut().for_each(Vec::clear);
+    cells.resize_with(cells_x * cells_y, Vec::new);
     for by in 0..m.grid_h {
         for bx in 0..m.grid_w {
             let i = by * m.grid_w + bx;
@@ -439,7 +577,7 @@ pub fn select(img: &LumWindow, p: &SelectParams, core: Core) -> Vec<Candidate> {
     }
     let mut out = Vec::new();
     let min_sep = (p.win_w.min(p.win_h) / 2).max(1);
-    for mut cell in cells {
+    for cell in &mut cells[..cells_x * cells_y] {
         // Only the strongest few are ever tried: a partial sort is enough.
         let keep = 32 * p.per_cell;
         if cell.len() > keep {
@@ -449,7 +587,7 @@ pub fn select(img: &LumWindow, p: &SelectParams, core: Core) -> Vec<Candidate> {
         cell.sort_unstable_by(|a, b| b.0.total_cmp(&a.0));
         let mut taken: Vec<(usize, usize)> = Vec::new();
         let mut tried = 0;
-        for &(st, contrast_std, x, y) in &cell {
+        for &(st, contrast_std, x, y) in cell.iter() {
             if taken.len() >= p.per_cell || tried >= 3 * p.per_cell {
                 break;
             }
@@ -459,7 +597,7 @@ pub fn select(img: &LumWindow, p: &SelectParams, core: Core) -> Vec<Candidate> {
             tried += 1;
             // Uniqueness is judged at half resolution: a sixteenth of the work, and
             // low-passing tends to raise a competing peak rather than hide it.
-            let sp = second_peak(&coarse_img, &coarse_sums, x / 2, y / 2, &coarse_p);
+            let sp = second_peak(&coarse_img, coarse_sums, x / 2, y / 2, &coarse_p);
             if sp > p.max_second_peak {
                 continue;
             }
@@ -482,6 +620,23 @@ mod tests {
                 ((s >> 33) % 200) as f32 + 20.0
             })
             .collect()
+    }
+
+    #[test]
+    fn block_sums_match_the_scalar_order() {
+        for n in [0, 1, 3, 4, 5, 9, 17] {
+            let src: Vec<f32> = noise(4 * n, 1, 7).iter().map(|v| v * 0.37 - 41.0).collect();
+            let mut got: Vec<f32> = (0..n).map(|j| j as f32 * 0.1).collect();
+            let mut want = got.clone();
+            block_sums_add(&src, &mut got);
+            for (j, w) in want.iter_mut().enumerate() {
+                *w += src[4 * j] + src[4 * j + 1] + src[4 * j + 2] + src[4 * j + 3];
+            }
+            assert_eq!(
+                got.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                want.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
+            );
+        }
     }
 
     #[test]

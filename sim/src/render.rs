@@ -186,7 +186,7 @@ impl<'a> Renderer<'a> {
         best
     }
 
-    #[inline]
+    #[inline(always)]
     fn geodetic_at(&self, o: &Vector3<f64>, d: &Vector3<f64>, s: f64) -> (f64, f64, f64) {
         let p = o + d * s;
         self.near.geodetic(p.x, p.y, p.z)

@@ -32,8 +32,9 @@ impl<T: Copy> LatLonGrid<T> {
         if !(r >= 0.0 && c >= 0.0) {
             return None;
         }
-        let (fr, fc) = (r.floor(), c.floor());
-        let (ir, ic) = (fr as usize, fc as usize);
+        // Truncation is the floor here (non-negative), without a libm call.
+        let (ir, ic) = (r as usize, c as usize);
+        let (fr, fc) = (ir as f64, ic as f64);
         if ir + 1 >= self.rows || ic + 1 >= self.cols {
             // The last row/column belongs to the grid too.
             if (r == (self.rows - 1) as f64 || ir + 1 < self.rows)
@@ -51,7 +52,7 @@ impl<T: Copy> LatLonGrid<T> {
 
 impl LatLonGrid<f32> {
     /// Bilinear value; NaN outside the grid or next to a NaN node.
-    #[inline]
+    #[inline(always)]
     pub fn bilinear(&self, lat_deg: f64, lon_deg: f64) -> f64 {
         let (r, c) = self.position(lat_deg, lon_deg);
         let Some((i, tr, tc)) = self.cell(r, c) else { return f64::NAN };
@@ -286,22 +287,25 @@ impl NearGeodetic {
     }
 
     /// Latitude, longitude (degrees) and ellipsoidal height (m).
-    #[inline]
+    #[inline(always)]
     pub fn geodetic(&self, x: f64, y: f64, z: f64) -> (f64, f64, f64) {
         let ep2 = WGS84_E2 / (1.0 - WGS84_E2);
         let p = (x * x + y * y).sqrt();
         let (bz, bp) = (WGS84_A * z, WGS84_B * p);
-        let r = (bz * bz + bp * bp).sqrt();
-        let (sb, cb) = (bz / r, bp / r);
+        let inv_r = 1.0 / (bz * bz + bp * bp).sqrt();
+        let (sb, cb) = (bz * inv_r, bp * inv_r);
         let num = z + ep2 * WGS84_B * sb * sb * sb;
         let den = p - WGS84_E2 * WGS84_A * cb * cb * cb;
-        let rr = (num * num + den * den).sqrt();
-        let (sl, cl) = (num / rr, den / rr);
+        let inv_rr = 1.0 / (num * num + den * den).sqrt();
+        let (sl, cl) = (num * inv_rr, den * inv_rr);
         let h = p * cl + z * sl - WGS84_A * (1.0 - WGS84_E2 * sl * sl).sqrt();
         // Angle differences from the reference: atan of their tangents.
-        let t_lat = (sl * self.cos_lat0 - cl * self.sin_lat0) / (cl * self.cos_lat0 + sl * self.sin_lat0);
-        let t_lon = (y * self.cos_lon0 - x * self.sin_lon0) / (x * self.cos_lon0 + y * self.sin_lon0);
-        if t_lat.abs() > 0.05 || t_lon.abs() > 0.05 || !(cl * self.cos_lat0 + sl * self.sin_lat0 > 0.0) {
+        let lat_den = cl * self.cos_lat0 + sl * self.sin_lat0;
+        let lon_den = x * self.cos_lon0 + y * self.sin_lon0;
+        let inv = 1.0 / (lat_den * lon_den);
+        let t_lat = (sl * self.cos_lat0 - cl * self.sin_lat0) * lon_den * inv;
+        let t_lon = (y * self.cos_lon0 - x * self.sin_lon0) * lat_den * inv;
+        if t_lat.abs() > 0.05 || t_lon.abs() > 0.05 || !(lat_den > 0.0 && lon_den > 0.0) {
             return fast_geodetic(x, y, z);
         }
         let lat = self.lat0_rad + small_atan(t_lat);

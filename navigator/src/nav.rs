@@ -209,8 +209,10 @@ impl<'a> Navigator<'a> {
                     self.last_fix = Some((t, sol.pose));
                     self.pose = sol.pose;
                     self.t = t;
-                    self.sigma_m = sol.sigma_m.max(5.0);
-                    self.sigma_rad = sol.sigma_rad.max(1e-4);
+                    // The covariance of a fix from few matches is pessimistic;
+                    // the next search only needs to cover a plausible miss.
+                    self.sigma_m = sol.sigma_m.clamp(2.0, 200.0);
+                    self.sigma_rad = sol.sigma_rad.clamp(1e-4, 1f64.to_radians());
                 } else {
                     debug!("t {t:.3}: fix rejected ({} inliers, height jump {jump:.0} m)", sol.inliers);
                     self.carry(t);

@@ -1,0 +1,150 @@
+//! End to end: build a landmark database from a synthetic map, simulate a
+//! short flight over it, navigate it with the real `trn` binary and score it
+//! with `trn evaluate`.
+
+mod common;
+
+use std::path::{Path, PathBuf};
+
+use common::{run, stderr, synth};
+
+/// Map, database and a 3 s nadir flight 3 km above the terrain.
+struct Setup {
+    _dir: tempfile::TempDir,
+    db: PathBuf,
+    flight: PathBuf,
+    root: PathBuf,
+}
+
+fn setup() -> Setup {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().to_path_buf();
+    let (ortho, dem) = synth(&root, 1500, 4.0, 440000.0, 21);
+    let db = root.join("map.gpkg");
+    let o = run(&[
+        "build",
+        "--ortho",
+        ortho.to_str().unwrap(),
+        "--dem",
+        dem.to_str().unwrap(),
+        "--dem-vertical",
+        "ellipsoid",
+        "--spacing",
+        "32",
+        "--out",
+        db.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "build failed: {}", stderr(&o));
+    let scenario = root.join("scenario.json");
+    std::fs::write(
+        &scenario,
+        r#"{"name": "test", "seed": 5,
+            "camera": {"width": 320, "height": 240, "hfov_deg": 40},
+            "frame_rate_hz": 4,
+            "trajectory": {"kind": "balloon", "start_h_m": 4600, "end_h_m": 4000, "descent_rate_sl_m_s": 5,
+                           "yaw_rate_deg_s": 6, "spin_bursts": 0, "pendulum_deg": 2},
+            "init_error": {"horizontal_m": 100, "vertical_m": 30, "attitude_deg": 1},
+            "realism": {"noise": {}, "photometric": {}}}"#,
+    )
+    .unwrap();
+    let flight = root.join("flight");
+    let o = run(&[
+        "simulate",
+        "--ortho",
+        ortho.to_str().unwrap(),
+        "--dem",
+        dem.to_str().unwrap(),
+        "--dem-vertical",
+        "ellipsoid",
+        "--scenario",
+        scenario.to_str().unwrap(),
+        "--out",
+        flight.to_str().unwrap(),
+        "--duration",
+        "3",
+    ]);
+    assert!(o.status.success(), "simulate failed: {}", stderr(&o));
+    Setup { _dir: dir, db, flight, root }
+}
+
+fn navigate(s: &Setup, out: &Path, extra: &[&str]) -> std::process::Output {
+    let mut args = vec![
+        "navigate",
+        "--db",
+        s.db.to_str().unwrap(),
+        "--flight",
+        s.flight.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    args.extend_from_slice(extra);
+    run(&args)
+}
+
+fn evaluate(s: &Setup, poses: &Path) -> serde_json::Value {
+    let json = s.root.join("eval.json");
+    let o = run(&[
+        "evaluate",
+        "--flight",
+        s.flight.to_str().unwrap(),
+        "--poses",
+        poses.to_str().unwrap(),
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "evaluate failed: {}", stderr(&o));
+    serde_json::from_str(&std::fs::read_to_string(json).unwrap()).unwrap()
+}
+
+#[test]
+fn navigates_a_simulated_flight_to_metres() {
+    let s = setup();
+    let poses = s.root.join("poses.csv");
+    let o = navigate(&s, &poses, &[]);
+    assert!(o.status.success(), "navigate failed: {}", stderr(&o));
+    let report = evaluate(&s, &poses);
+    let run = &report["runs"][0];
+    let share = run["status"]["share_fix"].as_f64().unwrap();
+    let mean = run["fix_errors"]["pos_m"]["mean"].as_f64().unwrap();
+    let att = run["fix_errors"]["att_deg"]["mean"].as_f64().unwrap();
+    println!("fix share {share:.2}, mean 3D error {mean:.2} m, attitude {att:.4} deg");
+    // 13 frames from a 100 m / 1 deg initial error, 4 m ortho, ~7 m camera pixels.
+    assert!(share >= 0.9, "fix share {share}");
+    assert!(mean < 10.0, "mean error {mean} m");
+    assert!(att < 0.1, "attitude error {att} deg");
+    // matches.csv sits next to poses.csv, one row per correlation match.
+    let matches = std::fs::read_to_string(s.root.join("matches.csv")).unwrap();
+    assert!(matches.starts_with("t,landmark,u,v,pred_u,pred_v,residual_px,inlier\n"));
+    assert!(matches.lines().count() > 13 * 8);
+
+    // At 2 images per second only every other frame is processed while fixes
+    // are accepted.
+    let half = s.root.join("half.csv");
+    let o = navigate(&s, &half, &["--rate", "2", "--no-gyro"]);
+    assert!(o.status.success(), "navigate failed: {}", stderr(&o));
+    let rows = std::fs::read_to_string(&half).unwrap().lines().count() - 1;
+    assert!((7..13).contains(&rows), "{rows} rows at 2 Hz");
+}
+
+#[test]
+fn bad_inputs_are_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("poses.csv");
+    let missing = dir.path().join("nope");
+    let o = run(&[
+        "navigate",
+        "--db",
+        missing.join("x.gpkg").to_str().unwrap(),
+        "--flight",
+        missing.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(!o.status.success());
+    let e = stderr(&o);
+    assert!(e.contains("nope"), "{e}");
+    assert!(!out.exists());
+    let o = run(&["navigate", "--db", "x", "--flight", "y", "--out", "z", "--rate", "0"]);
+    assert!(!o.status.success());
+    assert!(stderr(&o).contains("--rate"), "{}", stderr(&o));
+}

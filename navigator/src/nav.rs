@@ -69,7 +69,7 @@ impl Default for NavParams {
             init_sigma_deg: 2.0,
             gyro_drift_deg_s: 0.01,
             velocity_sigma_m_s: 20.0,
-            attitude_prior_deg: 0.05,
+            attitude_prior_deg: 0.001,
         }
     }
 }
@@ -92,6 +92,9 @@ pub struct Navigator<'a> {
     levels: Vec<(u8, f64)>,
     /// Template side (px) in the database.
     template_px: f64,
+    /// Per level: the last (enlarged) query box and its templates; the
+    /// footprint moves little between frames.
+    cache: std::cell::RefCell<std::collections::HashMap<u8, (trn_landmark::GeoBox, Vec<Template>)>>,
     /// Current estimate and when.
     t: f64,
     pose: CameraPose,
@@ -103,6 +106,8 @@ pub struct Navigator<'a> {
 }
 
 const PYRAMID_LEVELS: usize = 4;
+/// Largest warped template side (px): bigger ones are cut to their centre.
+const MAX_PATCH_PX: usize = 63;
 /// Fewest landmarks in view for a coarse search level.
 const MIN_COARSE_LANDMARKS: usize = 20;
 /// Smallest template size at a coarse search level (level pixels).
@@ -147,6 +152,7 @@ impl<'a> Navigator<'a> {
             lut: UndistortLut::new(&camera.model, PYRAMID_LEVELS),
             levels,
             template_px,
+            cache: Default::default(),
             t: init.t,
             pose: CameraPose::new(init.position.to_ecef(), init.q_ecef_cam),
             sigma_m: params.init_sigma_m,
@@ -212,7 +218,7 @@ impl<'a> Navigator<'a> {
                     // The covariance of a fix from few matches is pessimistic;
                     // the next search only needs to cover a plausible miss.
                     self.sigma_m = sol.sigma_m.clamp(2.0, 200.0);
-                    self.sigma_rad = sol.sigma_rad.clamp(1e-4, 1f64.to_radians());
+                    self.sigma_rad = sol.sigma_rad.clamp(1e-5, 1f64.to_radians());
                 } else {
                     debug!("t {t:.3}: fix rejected ({} inliers, height jump {jump:.0} m)", sol.inliers);
                     self.carry(t);
@@ -242,6 +248,45 @@ impl<'a> Navigator<'a> {
                 })
                 .collect(),
         }
+    }
+
+    /// Templates of `level` meeting `bbox`, through the per-level cache.
+    fn query(
+        &self,
+        bbox: &trn_landmark::GeoBox,
+        level: u8,
+    ) -> Result<Vec<Template>, crate::source::SourceError> {
+        let inside = |outer: &trn_landmark::GeoBox| {
+            !bbox.crosses_antimeridian()
+                && !outer.crosses_antimeridian()
+                && outer.min_lon_deg <= bbox.min_lon_deg
+                && outer.max_lon_deg >= bbox.max_lon_deg
+                && outer.min_lat_deg <= bbox.min_lat_deg
+                && outer.max_lat_deg >= bbox.max_lat_deg
+        };
+        let mut cache = self.cache.borrow_mut();
+        let hit = cache.get(&level).is_some_and(|(b, _)| inside(b));
+        if !hit {
+            // Half the box's size again on every side.
+            let (dw, dh) = (
+                0.5 * (bbox.max_lon_deg - bbox.min_lon_deg).abs(),
+                0.5 * (bbox.max_lat_deg - bbox.min_lat_deg),
+            );
+            let big = if bbox.crosses_antimeridian() {
+                *bbox
+            } else {
+                trn_landmark::GeoBox::new(
+                    (bbox.min_lon_deg - dw).max(-180.0),
+                    (bbox.min_lat_deg - dh).max(-90.0),
+                    (bbox.max_lon_deg + dw).min(180.0),
+                    (bbox.max_lat_deg + dh).min(90.0),
+                )
+            };
+            let ts = self.source.query(&big, level)?;
+            cache.insert(level, (big, ts));
+        }
+        let (_, ts) = &cache[&level];
+        Ok(ts.iter().filter(|t| t.footprint.intersects(bbox)).cloned().collect())
     }
 
     /// Template level whose GSD is closest (in ratio) to `gsd_m`.
@@ -319,7 +364,7 @@ impl<'a> Navigator<'a> {
         let lo = db_level.saturating_sub(2);
         let mut templates = Vec::new();
         for l in self.levels.iter().map(|l| l.0).filter(|&l| l >= lo && l <= db_level + 2) {
-            templates.extend(self.source.query(&fp.bbox, l).map_err(|e| {
+            templates.extend(self.query(&fp.bbox, l).map_err(|e| {
                 tracing::warn!("landmark query failed: {e}");
                 0usize
             })?);
@@ -338,7 +383,9 @@ impl<'a> Navigator<'a> {
         let view = ImageView::new(img.width, img.height, &img.data);
         let predicted: Vec<Predicted> = chosen
             .iter()
-            .filter_map(|t| predict(t, pose, &self.camera, &self.lut, level, 63, self.params.alpha_max_deg))
+            .filter_map(|t| {
+                predict(t, pose, &self.camera, &self.lut, level, MAX_PATCH_PX, self.params.alpha_max_deg)
+            })
             .collect();
         let mut pixels = Vec::new();
         let mut points = Vec::new();
@@ -430,7 +477,7 @@ impl<'a> Navigator<'a> {
         if size_px < MIN_PATCH_PX {
             return 0;
         }
-        let Ok(ts) = self.source.query(&fp.bbox, db_level) else { return 0 };
+        let Ok(ts) = self.query(&fp.bbox, db_level) else { return 0 };
         let (w, h) = (self.camera.width as f64, self.camera.height as f64);
         ts.iter()
             .filter_map(|t| pose.project(&self.camera, &t.center_ecef()))

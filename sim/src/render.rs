@@ -144,6 +144,61 @@ impl<'a> Renderer<'a> {
         }
     }
 
+    /// The hit of a ray steeper than the steepest terrain, searched from a
+    /// guess `s0` (a neighbour's range). Along such a ray the height above
+    /// the terrain falls strictly (the ray descends faster than any slope can
+    /// rise), so there is exactly one crossing and no occluder before it: a
+    /// secant search from the guess finds it in two or three evaluations.
+    /// `None` when the ray is not steep enough or leaves the DEM.
+    fn cast_steep(&self, origin: &Vector3<f64>, dir: &Vector3<f64>, s0: f64) -> Option<Hit> {
+        let t = &self.scene.terrain;
+        let up = ellipsoid_normal(&(origin + dir * s0));
+        let d_down = -dir.dot(&up);
+        let d_horiz = (1.0 - d_down * d_down).max(0.0).sqrt();
+        // Margin for the vertical turning along the ray and for rounding.
+        if d_down <= 1.5 * t.max_slope * d_horiz + 0.02 {
+            return None;
+        }
+        let f_at = |s: f64| -> Option<(f64, f64, f64, f64)> {
+            let (lat, lon, h) = self.geodetic_at(origin, dir, s);
+            let ground = t.height_m(lat, lon);
+            ground.is_finite().then_some((h - ground, lat, lon, h))
+        };
+        let f0 = f_at(s0)?.0;
+        // First step: the ray's own descent rate (flat ground).
+        let mut last = (s0, f0);
+        let mut s = s0 + f0 / d_down;
+        // Nearest points known above (f > 0) and below the surface.
+        let (mut above, mut below): (Option<(f64, f64)>, Option<(f64, f64)>) = (None, None);
+        let mut last_side = 0i8;
+        for _ in 0..40 {
+            let (f, lat, lon, h) = f_at(s)?;
+            if f.abs() <= SURFACE_TOLERANCE_M {
+                return Some(Hit { range_m: s, lat_deg: lat, lon_deg: lon, h_m: h, has_dem: true });
+            }
+            let side = if f > 0.0 { 1 } else { -1 };
+            // Illinois: a side kept twice in a row has its value halved.
+            if side == last_side {
+                if let Some(o) = if side > 0 { below.as_mut() } else { above.as_mut() } {
+                    o.1 *= 0.5;
+                }
+            }
+            last_side = side;
+            if f > 0.0 {
+                above = Some((s, f));
+            } else {
+                below = Some((s, f));
+            }
+            let (a, b) = match (above, below) {
+                (Some(a), Some(b)) => (a, b),
+                _ => (last, (s, f)),
+            };
+            last = (s, f);
+            s = if a.1 != b.1 { (a.0 * b.1 - b.0 * a.1) / (b.1 - a.1) } else { s + f / d_down };
+        }
+        None
+    }
+
     /// False position (Illinois) between `sa` (above, fa > 0) and `sb`
     /// (below, fb < 0).
     fn refine(
@@ -204,9 +259,16 @@ impl<'a> Renderer<'a> {
         let hits = &mut *guard;
         hits.resize(w * h, PixelHit::SKY);
         hits.par_chunks_mut(w).enumerate().for_each(|(v, row)| {
+            // The left neighbour's hit starts steep rays next to the surface.
+            let mut prev: Option<f64> = None;
             for (u, out) in row.iter_mut().enumerate() {
                 let d = r * self.rays_cam[v * w + u];
-                *out = match self.cast_from(&o, cam_h, &d) {
+                let hit = match prev.and_then(|s0| self.cast_steep(&o, &d, s0)) {
+                    Some(h) => Some(h),
+                    None => self.cast_from(&o, cam_h, &d),
+                };
+                prev = hit.filter(|h| h.has_dem).map(|h| h.range_m);
+                *out = match hit {
                     None => PixelHit::SKY,
                     Some(hit) => {
                         let xy = if hit.has_dem {
@@ -461,6 +523,30 @@ mod tests {
             }
         }
         assert!(n > 50);
+    }
+
+    #[test]
+    fn steep_rays_from_a_neighbours_range_find_the_same_hit() {
+        let sc = scene(|lat, lon| 1500.0 + 120.0 * ((lat * 900.0).sin() * (lon * 700.0).cos()));
+        let cam = CameraModel::from_fov(64, 48, 50.0);
+        let r = Renderer::new(&sc, cam);
+        let pos = Geodetic::new(40.1, -105.6, 6000.0).to_ecef();
+        let target = Geodetic::new(40.11, -105.6, 1500.0).to_ecef();
+        let pose = CameraPose::look_at(pos, target, Geodetic::new(40.1, -105.6, 0.0).up_ecef());
+        let mut n = 0;
+        for v in (0..48).step_by(4) {
+            for u in (0..64).step_by(4) {
+                let d = pose.q_ecef_cam * cam.ray(Pixel::new(u as f64, v as f64));
+                let full = r.cast(&pos.0, &d).unwrap();
+                for guess in [-300.0, -20.0, 0.5, 40.0, 250.0] {
+                    if let Some(fast) = r.cast_steep(&pos.0, &d, full.range_m + guess) {
+                        assert!((fast.range_m - full.range_m).abs() < 0.05, "({u},{v}) {guess}");
+                        n += 1;
+                    }
+                }
+            }
+        }
+        assert!(n > 500, "{n} steep casts");
     }
 
     #[test]

@@ -169,7 +169,8 @@ impl<'a> Renderer<'a> {
         let mut last = (s0, f0);
         let mut s = s0 + f0 / d_down;
         // Nearest points known above (f > 0) and below the surface.
-        let (mut above, mut below): (Option<(f64, f64)>, Option<(f64, f64)>) = (None, None);
+        let mut above: Option<(f64, f64)> = None;
+        let mut below: Option<(f64, f64)> = None;
         let mut last_side = 0i8;
         for _ in 0..40 {
             let (f, lat, lon, h) = f_at(s)?;

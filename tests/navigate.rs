@@ -6,7 +6,7 @@ mod common;
 
 use std::path::{Path, PathBuf};
 
-use common::{run, stderr, synth};
+use common::{run, simulate, stderr, synth};
 
 /// Map, database and a 3 s nadir flight 3 km above the terrain.
 struct Setup {
@@ -48,21 +48,7 @@ fn setup() -> Setup {
     )
     .unwrap();
     let flight = root.join("flight");
-    let o = run(&[
-        "simulate",
-        "--ortho",
-        ortho.to_str().unwrap(),
-        "--dem",
-        dem.to_str().unwrap(),
-        "--dem-vertical",
-        "ellipsoid",
-        "--scenario",
-        scenario.to_str().unwrap(),
-        "--out",
-        flight.to_str().unwrap(),
-        "--duration",
-        "3",
-    ]);
+    let o = simulate(&ortho, &dem, &scenario, &flight, &["--duration", "3"]);
     assert!(o.status.success(), "simulate failed: {}", stderr(&o));
     Setup { _dir: dir, db, flight, root }
 }

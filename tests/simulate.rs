@@ -46,26 +46,7 @@ fn write_scenario(dir: &Path, name: &str, s: &Value) -> PathBuf {
     p
 }
 
-fn simulate(ortho: &Path, dem: &Path, scenario: &Path, out: &Path, extra: &[&str]) -> Output {
-    let mut args = vec![
-        "simulate",
-        "--ortho",
-        ortho.to_str().unwrap(),
-        "--dem",
-        dem.to_str().unwrap(),
-        "--dem-vertical",
-        "ellipsoid",
-        "--scenario",
-        scenario.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ];
-    if !extra.contains(&"--threads") {
-        args.extend_from_slice(&["--threads", "2"]);
-    }
-    args.extend_from_slice(extra);
-    common::run(&args)
-}
+use common::simulate;
 
 fn simulate_ok(ortho: &Path, dem: &Path, scenario: &Path, out: &Path, extra: &[&str]) {
     let o = simulate(ortho, dem, scenario, out, extra);

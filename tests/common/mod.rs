@@ -63,3 +63,25 @@ pub fn synth(dir: &Path, size: usize, gsd: f64, east: f64, seed: u64) -> (PathBu
     assert!(o.status.success(), "synth failed: {}", stderr(&o));
     (ortho, dem)
 }
+
+/// `trn simulate` over an ortho + ellipsoidal DEM (two threads unless `extra` says).
+pub fn simulate(ortho: &Path, dem: &Path, scenario: &Path, out: &Path, extra: &[&str]) -> Output {
+    let mut args = vec![
+        "simulate",
+        "--ortho",
+        ortho.to_str().unwrap(),
+        "--dem",
+        dem.to_str().unwrap(),
+        "--dem-vertical",
+        "ellipsoid",
+        "--scenario",
+        scenario.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    if !extra.contains(&"--threads") {
+        args.extend_from_slice(&["--threads", "2"]);
+    }
+    args.extend_from_slice(extra);
+    run(&args)
+}

@@ -173,11 +173,15 @@ pub fn simulate(opts: &SimOptions, cancel: &AtomicBool) -> Result<SimReport, Sim
             w_cam_rad_s: camera_rate(&pose_at, pose.t, duration),
             exposure_s: scenario.camera.exposure_s,
         };
-        let before = img.grey.clone();
-        effects::apply(&scenario.realism, &mut img.grey, &geo, &ctx, scenario.seed);
+        // Coverage before the effects change the grey levels.
         let ground_px = img.range_m.iter().filter(|r| !r.is_nan()).count();
-        let covered =
-            before.iter().zip(&img.range_m).filter(|(g, r)| !r.is_nan() && **g != render::NODATA_DN).count();
+        let covered = img
+            .grey
+            .iter()
+            .zip(&img.range_m)
+            .filter(|(g, r)| !r.is_nan() && **g != render::NODATA_DN)
+            .count();
+        effects::apply(&scenario.realism, &mut img.grey, &geo, &ctx, scenario.seed);
         min_ground = min_ground.min(ground_px as f64 / img.grey.len() as f64);
         if ground_px > 0 {
             min_cov = min_cov.min(covered as f64 / ground_px as f64);

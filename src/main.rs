@@ -273,20 +273,11 @@ fn main() -> ExitCode {
 }
 
 fn run_build(a: BuildArgs) -> anyhow::Result<()> {
-    if let Some(n) = a.threads {
-        rayon::ThreadPoolBuilder::new().num_threads(n as usize).build_global()?;
-    }
-    let cancel = Arc::new(AtomicBool::new(false));
-    let flag = cancel.clone();
-    // First Ctrl-C stops between tiles and cleans up; the output is never half-written.
-    ctrlc::set_handler(move || flag.store(true, Ordering::Relaxed))?;
+    set_threads(a.threads)?;
+    let cancel = cancel_flag()?;
     let mut o = BuildOptions::new(a.orthos, a.dems, a.out);
     o.ortho_bands = a.ortho_bands;
-    o.dem_vertical = a.dem_vertical.map(|v| match v {
-        VerticalArg::Egm96 => DemVertical::Egm96,
-        VerticalArg::Ellipsoid => DemVertical::Ellipsoid,
-        VerticalArg::Geoid => DemVertical::Geoid,
-    });
+    o.dem_vertical = vertical(a.dem_vertical);
     o.geoid = a.geoid;
     o.template_size = a.template_size;
     o.spacing_px = a.spacing;
@@ -312,7 +303,16 @@ fn vertical(v: Option<VerticalArg>) -> Option<DemVertical> {
     })
 }
 
-/// Ctrl-C sets the flag; long jobs stop at the next safe point and clean up.
+/// Sizes rayon's pool when `--threads` is given (default: all cores).
+fn set_threads(threads: Option<u32>) -> anyhow::Result<()> {
+    if let Some(n) = threads {
+        rayon::ThreadPoolBuilder::new().num_threads(n as usize).build_global()?;
+    }
+    Ok(())
+}
+
+/// Ctrl-C sets the flag; long jobs stop at the next safe point and clean up
+/// (the output is never half-written).
 fn cancel_flag() -> anyhow::Result<Arc<AtomicBool>> {
     let cancel = Arc::new(AtomicBool::new(false));
     let flag = cancel.clone();
@@ -321,9 +321,7 @@ fn cancel_flag() -> anyhow::Result<Arc<AtomicBool>> {
 }
 
 fn run_simulate(a: SimulateArgs) -> anyhow::Result<()> {
-    if let Some(n) = a.threads {
-        rayon::ThreadPoolBuilder::new().num_threads(n as usize).build_global()?;
-    }
+    set_threads(a.threads)?;
     if let Some(d) = a.duration {
         anyhow::ensure!(
             d.is_finite() && d >= 0.0,
@@ -394,6 +392,10 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
 
 fn run_synth(a: SynthArgs) -> anyhow::Result<()> {
     use trn_builder::synth::{write_dem, write_ortho, SynthGrid};
+    anyhow::ensure!(
+        a.relief.is_finite() && a.relief >= 0.0,
+        "invalid option --relief: must be a number of metres >= 0"
+    );
     let ortho = SynthGrid {
         epsg: 32613,
         geo_transform: [a.east, a.gsd, 0.0, a.north, 0.0, -a.gsd],
@@ -414,10 +416,6 @@ fn run_synth(a: SynthArgs) -> anyhow::Result<()> {
         width: n,
         height: n,
     };
-    anyhow::ensure!(
-        a.relief.is_finite() && a.relief >= 0.0,
-        "invalid option --relief: must be a number of metres >= 0"
-    );
     write_dem(&a.dem, &dem, a.seed + 100, 1500.0, a.relief)?;
     println!("wrote {} and {}", a.ortho.display(), a.dem.display());
     Ok(())

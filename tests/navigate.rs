@@ -130,7 +130,27 @@ fn bad_inputs_are_named() {
     let e = stderr(&o);
     assert!(e.contains("nope"), "{e}");
     assert!(!out.exists());
-    let o = run(&["navigate", "--db", "x", "--flight", "y", "--out", "z", "--rate", "0"]);
+    for (opt, value) in
+        [("--rate", "0"), ("--alpha-max", "90"), ("--min-inliers", "3"), ("--max-landmarks", "2")]
+    {
+        let o = run(&["navigate", "--db", "x", "--flight", "y", "--out", "z", opt, value]);
+        assert!(!o.status.success(), "{opt} {value} accepted");
+        let e = stderr(&o);
+        assert!(e.lines().any(|l| l.starts_with("error:") && l.contains(opt)), "{opt}: {e}");
+    }
+    // trn synth checks its relief too, before writing anything.
+    let (ortho, dem) = (dir.path().join("o.tif"), dir.path().join("d.tif"));
+    let o = run(&[
+        "synth",
+        "--ortho",
+        ortho.to_str().unwrap(),
+        "--dem",
+        dem.to_str().unwrap(),
+        "--size",
+        "64",
+        "--relief=-5",
+    ]);
     assert!(!o.status.success());
-    assert!(stderr(&o).contains("--rate"), "{}", stderr(&o));
+    assert!(stderr(&o).contains("--relief"), "{}", stderr(&o));
+    assert!(!ortho.exists() && !dem.exists());
 }

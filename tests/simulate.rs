@@ -1141,3 +1141,77 @@ fn an_existing_flight_folder_is_replaced_whole() {
         .collect();
     assert!(!names.iter().any(|n| n.starts_with(".trn-")), "left behind: {names:?}");
 }
+
+/// Ctrl-C during rendering stops the simulation at the next frame: one
+/// `error:` line, no `--out`, no temporary folder.
+#[test]
+fn ctrl_c_cancels_and_leaves_nothing() {
+    use std::io::Read;
+    use std::process::Stdio;
+    use std::time::{Duration, Instant};
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let (ortho, dem) = common::synth(d, 200, 10.0, 440000.0, 51);
+    let sc = write_scenario(
+        d,
+        "long",
+        &json!({"camera": {"width": 320, "height": 240, "hfov_deg": 40},
+                "trajectory": {"kind": "balloon", "start_h_m": 4500, "end_h_m": 3000}}),
+    );
+    let out = d.join("flight");
+    let mut child = common::trn()
+        .args(["simulate", "--ortho", ortho.to_str().unwrap(), "--dem", dem.to_str().unwrap()])
+        .args([
+            "--dem-vertical",
+            "ellipsoid",
+            "--scenario",
+            sc.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ])
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("start trn simulate");
+    let mut pipe = child.stderr.take().unwrap();
+    let reader = std::thread::spawn(move || {
+        let mut s = String::new();
+        pipe.read_to_string(&mut s).ok();
+        s
+    });
+    let started = Instant::now();
+    // Wait until frames are being written into the temporary flight folder.
+    let rendering = || {
+        std::fs::read_dir(d).unwrap().map(|e| e.unwrap().path()).any(|p| {
+            p.file_name().unwrap().to_string_lossy().starts_with(".trn-sim-")
+                && std::fs::read_dir(p.join("images")).is_ok_and(|mut i| i.next().is_some())
+        })
+    };
+    while !rendering() {
+        assert!(child.try_wait().unwrap().is_none(), "simulation ended before it rendered");
+        assert!(started.elapsed() < Duration::from_secs(60), "no frame after 60 s");
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let kill = std::process::Command::new("kill").args(["-INT", &child.id().to_string()]).status().unwrap();
+    assert!(kill.success());
+    let sent = Instant::now();
+    let status = loop {
+        if let Some(st) = child.try_wait().unwrap() {
+            break st;
+        }
+        if sent.elapsed() > Duration::from_secs(30) {
+            child.kill().ok();
+            child.wait().ok();
+            panic!("still running 30 s after SIGINT");
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    };
+    let err = reader.join().unwrap();
+    assert!(status.code().is_some_and(|c| c != 0), "{status:?}, stderr:\n{err}");
+    let lines: Vec<&str> = err.lines().filter(|l| l.starts_with("error:")).collect();
+    assert_eq!(lines.len(), 1, "stderr:\n{err}");
+    assert!(lines[0].contains("cancelled"), "{}", lines[0]);
+    assert!(!out.exists());
+    let left = common::leftovers(d, &[&ortho, &dem, &sc]);
+    assert!(left.is_empty(), "cancelled simulation left behind: {left:?}");
+}

@@ -196,8 +196,14 @@ struct NavigateArgs {
     #[arg(long, default_value_t = 450.0)]
     max_height_jump: f64,
     /// Landmarks correlated per image.
-    #[arg(long, default_value_t = 80)]
+    #[arg(long, default_value_t = 200)]
     max_landmarks: usize,
+    /// Gyro angle random walk assumed by the attitude filter (deg/sqrt(h), 1 sigma).
+    #[arg(long, default_value_t = 0.3)]
+    gyro_arw: f64,
+    /// Gyro bias uncertainty assumed by the attitude filter at the start (deg/h, 1 sigma).
+    #[arg(long, default_value_t = 20.0)]
+    gyro_bias: f64,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -356,6 +362,14 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
     );
     anyhow::ensure!(a.min_inliers >= 4, "invalid option --min-inliers: must be at least 4");
     anyhow::ensure!(a.max_landmarks >= 4, "invalid option --max-landmarks: must be at least 4");
+    anyhow::ensure!(
+        a.gyro_arw.is_finite() && a.gyro_arw > 0.0,
+        "invalid option --gyro-arw: must be deg/sqrt(h) > 0"
+    );
+    anyhow::ensure!(
+        a.gyro_bias.is_finite() && a.gyro_bias > 0.0,
+        "invalid option --gyro-bias: must be deg/h > 0"
+    );
     let flight = trn_flight::Flight::open(&a.flight)?;
     let source = trn_navigator::DbSource::open(&a.db)?;
     let mut params = trn_navigator::NavParams { use_gyro: !a.no_gyro, ..Default::default() };
@@ -363,6 +377,8 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
     params.min_inliers = a.min_inliers;
     params.max_height_jump_m = a.max_height_jump;
     params.max_landmarks = a.max_landmarks;
+    params.gyro_arw_deg_sqrt_s = a.gyro_arw / 60.0;
+    params.gyro_bias_deg_s = a.gyro_bias / 3600.0;
     let opts = trn_navigator::RunOptions { rate_hz: a.rate, params };
     let bar = indicatif::ProgressBar::new(flight.frames.len() as u64);
     bar.set_style(

@@ -12,6 +12,7 @@
 // `!(x > y)` is how these crates reject NaN along with out-of-range values.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
+pub mod attitude;
 pub mod footprint;
 pub mod image;
 pub mod nav;

@@ -3,19 +3,20 @@
 
 use std::time::Instant;
 
-use nalgebra::{UnitQuaternion, Vector3};
+use nalgebra::{Matrix3, Matrix6, UnitQuaternion, Vector3};
 use tracing::debug;
 use trn_camera::{CameraConfig, CameraModel, CameraPose, Pixel};
 use trn_flight::{FixStatus, ImuSample, MatchRecord, NavRecord, TimedPose};
 use trn_landmark::Template;
 use trn_vision::ncc::{self, ImageView, NccParams};
-use trn_vision::pnp::{refine_pose, RefineOptions};
+use trn_vision::pnp::{refine_pose, rotation_vector, AttitudePrior, RefineOptions};
 use trn_vision::ransac::{ransac_p3p, RansacParams};
 
+use crate::attitude::{AttitudeFilter, GyroErrors};
 use crate::footprint::{footprint, FootprintParams};
 use crate::image::{GreyImage, Pyramid, UndistortLut};
 use crate::predict::{predict, Predicted};
-use crate::propagate::propagate;
+use crate::propagate::propagate_with_bias;
 use crate::source::LandmarkSource;
 
 /// Navigator settings (the `trn navigate` options).
@@ -44,12 +45,14 @@ pub struct NavParams {
     /// Position and attitude uncertainty of the initial guess (1 sigma).
     pub init_sigma_m: f64,
     pub init_sigma_deg: f64,
-    /// Gyro attitude drift assumed between fixes (deg/s, 1 sigma) and the
-    /// velocity uncertainty (m/s).
-    pub gyro_drift_deg_s: f64,
+    /// Gyro error model of the attitude filter (1 sigma per axis): the
+    /// initial bias uncertainty (deg/s), the angle random walk
+    /// (deg/sqrt(s)) and the bias random walk (deg/s/sqrt(s)).
+    pub gyro_bias_deg_s: f64,
+    pub gyro_arw_deg_sqrt_s: f64,
+    pub gyro_bias_walk_deg_s_sqrt_s: f64,
+    /// Velocity uncertainty between fixes (m/s).
     pub velocity_sigma_m_s: f64,
-    /// Attitude prior sigma in the refinement when the gyro carries the attitude (deg).
-    pub attitude_prior_deg: f64,
 }
 
 impl Default for NavParams {
@@ -60,16 +63,19 @@ impl Default for NavParams {
             horizon_step_px: 10.0,
             min_inliers: 8,
             max_height_jump_m: 450.0,
-            max_landmarks: 80,
+            max_landmarks: 200,
             grid: (8, 6),
             ransac_threshold_px: 2.0,
             ncc: NccParams { min_peak: 0.5, max_second_ratio: 0.92, min_template_std: 2.0 },
             max_radius_px: 16,
             init_sigma_m: 300.0,
             init_sigma_deg: 2.0,
-            gyro_drift_deg_s: 0.01,
+            // Twice the simulated tactical-grade gyro (10 deg/h, 0.15
+            // deg/sqrt(h)); the bias walks 0.01 deg/h per sqrt(s).
+            gyro_bias_deg_s: 20.0 / 3600.0,
+            gyro_arw_deg_sqrt_s: 0.3 / 60.0,
+            gyro_bias_walk_deg_s_sqrt_s: 0.01 / 3600.0,
             velocity_sigma_m_s: 20.0,
-            attitude_prior_deg: 0.001,
         }
     }
 }
@@ -99,7 +105,10 @@ pub struct Navigator<'a> {
     t: f64,
     pose: CameraPose,
     sigma_m: f64,
-    sigma_rad: f64,
+    /// Attitude error and gyro bias at `t`: a fix's posterior, carried by
+    /// the gyro, is the next frame's attitude prior, so a narrow-FOV nadir
+    /// view inherits the tilt the frames before it saw.
+    filter: AttitudeFilter,
     last_fix: Option<(f64, CameraPose)>,
     velocity: Vector3<f64>,
     terrain_h_m: f64,
@@ -112,6 +121,16 @@ const MAX_PATCH_PX: usize = 63;
 const MIN_COARSE_LANDMARKS: usize = 20;
 /// Smallest template size at a coarse search level (level pixels).
 const MIN_PATCH_PX: f64 = 12.0;
+/// Error of the velocity from two fixes (m/s, 1 sigma): their position
+/// errors over the gap, and acceleration since.
+const VELOCITY_KNOWN_SIGMA_M_S: f64 = 5.0;
+/// Smallest size (level pixels) of a template one level finer than the
+/// image's resolution for it to be used as well.
+const MIN_FINE_PATCH_PX: f64 = 14.0;
+/// A refined attitude farther than this (squared Mahalanobis distance, 3
+/// degrees of freedom, 99.9%) from the gyro prior means the two disagree:
+/// the frame is refined again with the prior loosened.
+const PRIOR_GATE_CHI2: f64 = 16.27;
 
 /// Terrain height near a position from the database (median template
 /// height within 20 km, for the first footprint) and the template side (px).
@@ -156,7 +175,14 @@ impl<'a> Navigator<'a> {
             t: init.t,
             pose: CameraPose::new(init.position.to_ecef(), init.q_ecef_cam),
             sigma_m: params.init_sigma_m,
-            sigma_rad: params.init_sigma_deg.to_radians(),
+            filter: AttitudeFilter::new(
+                params.init_sigma_deg.to_radians(),
+                GyroErrors {
+                    arw_rad_sqrt_s: params.gyro_arw_deg_sqrt_s.to_radians(),
+                    bias_rad_s: params.gyro_bias_deg_s.to_radians(),
+                    bias_walk_rad_s_sqrt_s: params.gyro_bias_walk_deg_s_sqrt_s.to_radians(),
+                },
+            ),
             params,
             last_fix: None,
             velocity: Vector3::zeros(),
@@ -164,39 +190,42 @@ impl<'a> Navigator<'a> {
         })
     }
 
-    /// The pose guess at `t`: attitude through the gyro, position by the
-    /// velocity of the last fixes.
-    fn guess(&self, t: f64) -> CameraPose {
+    /// The pose guess at `t` (attitude through the gyro less the estimated
+    /// bias, position by the velocity of the last fixes) and the attitude
+    /// filter's covariance there.
+    fn predict(&self, t: f64) -> (CameraPose, Matrix6<f64>) {
         let dt = t - self.t;
-        let q = if self.params.use_gyro {
+        let position = trn_geodesy::Ecef(self.pose.position.0 + self.velocity * dt);
+        if self.params.use_gyro {
             let q_ecef_imu = self.pose.q_ecef_cam * self.q_imu_cam.inverse();
-            propagate(q_ecef_imu, self.t, t, self.imu) * self.q_imu_cam
+            let p = propagate_with_bias(q_ecef_imu, self.t, t, self.imu, &self.filter.bias_imu_rad_s);
+            let cov = self.filter.propagated(&p.bias_to_attitude, dt);
+            (CameraPose::new(position, p.q_ecef_imu * self.q_imu_cam), cov)
         } else {
-            self.pose.q_ecef_cam
-        };
-        CameraPose::new(trn_geodesy::Ecef(self.pose.position.0 + self.velocity * dt), q)
+            // Without the gyro the attitude is only known at fixes.
+            let mut cov = self.filter.covariance;
+            let grow = (10.0f64.to_radians() * dt.max(0.5)).powi(2);
+            for i in 0..3 {
+                cov[(i, i)] += grow;
+            }
+            (CameraPose::new(position, self.pose.q_ecef_cam), cov)
+        }
     }
 
     /// The pose to report for a frame without an accepted fix.
-    fn carry(&mut self, t: f64) {
-        let g = self.guess(t);
+    fn carry(&mut self, t: f64, guess: CameraPose, propagated: Matrix6<f64>) {
         let dt = (t - self.t).max(0.0);
         self.sigma_m += self.params.velocity_sigma_m_s * dt;
-        self.sigma_rad += if self.params.use_gyro {
-            self.params.gyro_drift_deg_s.to_radians() * dt
-        } else {
-            // Without the gyro the attitude is only known at fixes.
-            (10.0f64).to_radians() * dt.max(0.5)
-        };
-        self.pose = g;
+        self.filter.carry(propagated);
+        self.pose = guess;
         self.t = t;
     }
 
     /// Processes one image taken at `t`.
     pub fn process(&mut self, t: f64, image: GreyImage) -> FrameResult {
         let start = Instant::now();
-        let guess = self.guess(t);
-        let outcome = self.solve(t, &guess, image);
+        let (guess, propagated) = self.predict(t);
+        let outcome = self.solve(t, &guess, &propagated, image);
         let ms = start.elapsed().as_secs_f64() * 1e3;
         let (status, inliers, n_matches, matches) = match outcome {
             Ok(sol) => {
@@ -218,16 +247,38 @@ impl<'a> Navigator<'a> {
                     // The covariance of a fix from few matches is pessimistic;
                     // the next search only needs to cover a plausible miss.
                     self.sigma_m = sol.sigma_m.clamp(2.0, 200.0);
-                    self.sigma_rad = sol.sigma_rad.clamp(1e-5, 1f64.to_radians());
+                    if !self.params.use_gyro || sol.prior_loosened {
+                        self.filter.reset_attitude(&propagated, &sol.att_cov);
+                    } else {
+                        let dtheta = rotation_vector(&(sol.pose.q_ecef_cam * guess.q_ecef_cam.inverse()));
+                        self.filter.update(&propagated, &dtheta, &sol.att_cov);
+                    }
+                    if tracing::enabled!(tracing::Level::DEBUG) {
+                        let r = trn_geodesy::LocalFrame::at(sol.pose.position.to_geodetic()).r_ecef_enu();
+                        let p = r.transpose() * sol.att_cov * r;
+                        let ps = r.transpose() * sol.pos_cov * r;
+                        debug!(
+                            "t {t:.3}: attitude sigma e/n/u {:.4} {:.4} {:.4} deg, position {:.1} {:.1} {:.1} m, gyro bias {:.2} {:.2} {:.2} deg/h",
+                            p[(0, 0)].sqrt().to_degrees(),
+                            p[(1, 1)].sqrt().to_degrees(),
+                            p[(2, 2)].sqrt().to_degrees(),
+                            ps[(0, 0)].sqrt(),
+                            ps[(1, 1)].sqrt(),
+                            ps[(2, 2)].sqrt(),
+                            self.filter.bias_imu_rad_s.x.to_degrees() * 3600.0,
+                            self.filter.bias_imu_rad_s.y.to_degrees() * 3600.0,
+                            self.filter.bias_imu_rad_s.z.to_degrees() * 3600.0,
+                        );
+                    }
                 } else {
                     debug!("t {t:.3}: fix rejected ({} inliers, height jump {jump:.0} m)", sol.inliers);
-                    self.carry(t);
+                    self.carry(t, guess, propagated);
                 }
                 let status = if accepted { FixStatus::Fix } else { FixStatus::Propagated };
                 (status, sol.inliers, sol.n_matches, sol.records)
             }
             Err(n) => {
-                self.carry(t);
+                self.carry(t, guess, propagated);
                 (FixStatus::Propagated, 0, n, Vec::new())
             }
         };
@@ -299,7 +350,19 @@ impl<'a> Navigator<'a> {
     }
 
     /// Coarse-to-fine pose from one image; `Err(matches)` when no pose came out.
-    fn solve(&mut self, t: f64, guess: &CameraPose, image: GreyImage) -> Result<Solution, usize> {
+    fn solve(
+        &mut self,
+        t: f64,
+        guess: &CameraPose,
+        propagated: &Matrix6<f64>,
+        image: GreyImage,
+    ) -> Result<Solution, usize> {
+        let att_cov: Matrix3<f64> = propagated.fixed_view::<3, 3>(0, 0).into_owned();
+        let sigma_rad = att_cov.trace().sqrt();
+        let prior = self
+            .params
+            .use_gyro
+            .then_some(AttitudePrior { q_ecef_cam: guess.q_ecef_cam, covariance: att_cov });
         let pyr = Pyramid::new(image, PYRAMID_LEVELS);
         let f = self.camera.fx.min(self.camera.fy);
         let fp = footprint(
@@ -315,7 +378,15 @@ impl<'a> Navigator<'a> {
             debug!("t {t:.3}: {e}");
             0usize
         })?;
-        let sigma_px = f * (self.sigma_rad + self.sigma_m / fp.center_range_m);
+        // The guess' position: the last fix's, plus the velocity's error over
+        // the gap (unknown before two fixes).
+        let v_sigma = if self.last_fix.is_some() && self.velocity != Vector3::zeros() {
+            VELOCITY_KNOWN_SIGMA_M_S
+        } else {
+            self.params.velocity_sigma_m_s
+        };
+        let sigma_m = self.sigma_m + v_sigma * (t - self.t).max(0.0);
+        let sigma_px = f * (sigma_rad + sigma_m / fp.center_range_m);
         let radius_full = (2.5 * sigma_px + 3.0).min(f * 0.25);
         // Coarsest level whose search radius fits, then the finest.
         let mut k = 0;
@@ -332,7 +403,7 @@ impl<'a> Navigator<'a> {
         let mut best: Option<Solution> = None;
         // Coarse to fine: each level starts from the pose of the one above.
         for level in (0..=k).rev() {
-            let sol = self.stage(&pyr, &pose, &fp, level, radius, guess)?;
+            let sol = self.stage(&pyr, &pose, &fp, level, radius, prior.as_ref())?;
             pose = sol.pose;
             best = Some(sol);
             radius = 5;
@@ -354,7 +425,7 @@ impl<'a> Navigator<'a> {
         fp: &crate::footprint::Footprint,
         level: usize,
         radius: usize,
-        prior: &CameraPose,
+        prior: Option<&AttitudePrior>,
     ) -> Result<Solution, usize> {
         let scale = (1u32 << level) as f64;
         // Oblique views span many ground resolutions: query the levels around
@@ -376,7 +447,12 @@ impl<'a> Navigator<'a> {
             let up = t.center.up_ecef();
             let cos_inc = ((pose.position.0 - c.0) / range.max(1e-9)).dot(&up).max(0.2);
             let local_gsd = range * pixel_angle / cos_inc.sqrt();
-            self.level_for(local_gsd).0 == t.level
+            // The best-fitting level, and the next finer one where its
+            // templates still span MIN_FINE_PATCH_PX: more landmarks, whose
+            // independent errors average out the tilt/shift ambiguity.
+            let best = self.level_for(local_gsd).0;
+            best == t.level
+                || (best == t.level + 1 && t.width_px as f64 * t.gsd_m / local_gsd >= MIN_FINE_PATCH_PX)
         });
         let chosen = self.spread(&templates, pose);
         let img = &pyr.levels[level];
@@ -420,15 +496,25 @@ impl<'a> Navigator<'a> {
         let in_pts: Vec<Vector3<f64>> =
             points.iter().zip(&r.inliers).filter(|x| *x.1).map(|x| *x.0).collect();
         let opts = RefineOptions {
-            prior: self
-                .params
-                .use_gyro
-                .then(|| (prior.q_ecef_cam, self.sigma_rad.max(self.params.attitude_prior_deg.to_radians()))),
+            prior: prior.copied(),
             huber_px: Some(scale),
-            pixel_sigma: 0.5 * scale,
+            pixel_sigma: 0.1 * scale,
             ..RefineOptions::default()
         };
-        let refined = refine_pose(&self.camera, &in_px, &in_pts, &r.pose, &opts).ok_or(n)?;
+        let mut refined = refine_pose(&self.camera, &in_px, &in_pts, &r.pose, &opts).ok_or(n)?;
+        let mut prior_loosened = false;
+        if let Some(p) = prior {
+            let d2 = p.mahalanobis2(&refined.pose.q_ecef_cam).unwrap_or(f64::INFINITY);
+            if d2 > PRIOR_GATE_CHI2 {
+                // The image and the gyro disagree (a bad earlier fix, or more
+                // drift than modelled): trust the image.
+                debug!("level {level}: attitude {d2:.0} chi2 from the gyro prior, prior loosened");
+                let loose = AttitudePrior { covariance: p.covariance * 1e4, ..*p };
+                let opts = RefineOptions { prior: Some(loose), ..opts };
+                refined = refine_pose(&self.camera, &in_px, &in_pts, &refined.pose, &opts).ok_or(n)?;
+                prior_loosened = true;
+            }
+        }
         // Re-classify every match with the refined pose.
         let thr = self.params.ransac_threshold_px * scale;
         let mut records = Vec::with_capacity(n);
@@ -454,16 +540,16 @@ impl<'a> Navigator<'a> {
                 inlier: inl,
             });
         }
-        let cov = refined.covariance;
-        let sigma_rad = (cov[(0, 0)] + cov[(1, 1)] + cov[(2, 2)]).max(0.0).sqrt();
-        let sigma_m = (cov[(3, 3)] + cov[(4, 4)] + cov[(5, 5)]).max(0.0).sqrt();
+        let sigma_m = refined.position_covariance().trace().max(0.0).sqrt();
         Ok(Solution {
             pose: refined.pose,
             inliers,
             n_matches: n,
             records,
             sigma_m,
-            sigma_rad,
+            att_cov: refined.attitude_covariance(),
+            pos_cov: refined.position_covariance(),
+            prior_loosened,
             mean_landmark_h: (inliers > 0).then(|| h_sum / inliers as f64),
         })
     }
@@ -533,6 +619,10 @@ struct Solution {
     n_matches: usize,
     records: Vec<MatchRecord>,
     sigma_m: f64,
-    sigma_rad: f64,
+    /// Posterior attitude covariance (prior included).
+    att_cov: Matrix3<f64>,
+    pos_cov: Matrix3<f64>,
+    /// The image disagreed with the gyro prior; it was refined again without it.
+    prior_loosened: bool,
     mean_landmark_h: Option<f64>,
 }

@@ -3,7 +3,7 @@
 //! sample, with the Earth's rotation taken out (the gyro measures rates
 //! relative to inertial space; the pose lives in ECEF).
 
-use nalgebra::{Quaternion, UnitQuaternion, Vector3};
+use nalgebra::{Matrix3, Quaternion, UnitQuaternion, Vector3};
 use trn_flight::ImuSample;
 use trn_geodesy::EARTH_RATE_RAD_S;
 
@@ -29,27 +29,60 @@ pub fn propagate(
     t1: f64,
     imu: &[ImuSample],
 ) -> UnitQuaternion<f64> {
+    propagate_with_bias(q_ecef_imu, t0, t1, imu, &Vector3::zeros()).q_ecef_imu
+}
+
+/// An attitude carried through the gyro.
+#[derive(Clone, Copy, Debug)]
+pub struct Propagated {
+    pub q_ecef_imu: UnitQuaternion<f64>,
+    /// `integral R_ecef_imu dt` over the interval (s): how an error `db` in
+    /// the gyro bias (rad/s, IMU frame) turns the attitude, `dtheta_ecef =
+    /// -bias_to_attitude * db` (the attitude filter's transition).
+    pub bias_to_attitude: Matrix3<f64>,
+}
+
+/// [`propagate`] with `bias_imu_rad_s` taken off every gyro sample, and the
+/// attitude's sensitivity to that bias.
+pub fn propagate_with_bias(
+    q_ecef_imu: UnitQuaternion<f64>,
+    t0: f64,
+    t1: f64,
+    imu: &[ImuSample],
+    bias_imu_rad_s: &Vector3<f64>,
+) -> Propagated {
+    let mut sens = Matrix3::zeros();
     if t1 <= t0 {
-        return q_ecef_imu;
+        return Propagated { q_ecef_imu, bias_to_attitude: sens };
     }
     // Body increments compose on the right (IMU frame); the ECEF frame turns
     // under the inertial one at the Earth rate, on the left:
     // q_ecef_imu(t1) = Rz(-we (t1 - t0)) q_ecef_imu(t0) dq_1 ... dq_n.
+    // The sensitivity ignores the Earth's turn over the interval (< 1e-4 rad).
+    let r0 = q_ecef_imu.to_rotation_matrix();
     let mut body = UnitQuaternion::identity();
     let start = imu.partition_point(|s| s.t <= t0);
+    let mut covered = t0;
     for k in start..imu.len() {
         let end = imu[k].t;
         let begin = if k > 0 { imu[k - 1].t } else { imu.get(1).map_or(end, |n| end - (n.t - end)) };
         let (a, b) = (begin.max(t0), end.min(t1));
         if b > a {
-            body *= strapdown_increment(&imu[k].w_imu_rad_s, b - a);
+            let dq = strapdown_increment(&(imu[k].w_imu_rad_s - bias_imu_rad_s), b - a);
+            // Mid-interval attitude (second order in the step).
+            let mid = body * UnitQuaternion::from_scaled_axis(dq.scaled_axis() * 0.5);
+            sens += (r0 * mid.to_rotation_matrix()).into_inner() * (b - a);
+            body *= dq;
+            covered = b;
         }
         if end >= t1 {
             break;
         }
     }
+    // Time no sample covers: the attitude stays fixed in inertial space.
+    sens += (r0 * body.to_rotation_matrix()).into_inner() * (t1 - covered).max(0.0);
     let earth = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), -EARTH_RATE_RAD_S * (t1 - t0));
-    earth * q_ecef_imu * body
+    Propagated { q_ecef_imu: earth * q_ecef_imu * body, bias_to_attitude: sens }
 }
 
 #[cfg(test)]
@@ -115,5 +148,31 @@ mod tests {
             let reference = propagate(UnitQuaternion::identity(), 0.0, 20.0, &fine);
             assert!(coarse.angle_to(&reference) < bound, "{rate} Hz: {}", coarse.angle_to(&reference));
         }
+    }
+
+    #[test]
+    fn bias_sensitivity_matches_finite_differences() {
+        let w = |t: f64| Vector3::new(0.3 * (2.0 * t).cos(), 0.3 * (2.0 * t).sin(), 0.5);
+        let imu = samples(200.0, 5.0, w);
+        let q0 = UnitQuaternion::from_euler_angles(0.3, -1.1, 2.0);
+        let b = Vector3::new(1e-4, -2e-4, 5e-5);
+        let (t0, t1) = (0.4012, 1.3333);
+        let base = propagate_with_bias(q0, t0, t1, &imu, &b);
+        let h = 1e-6;
+        for i in 0..3 {
+            let mut db = Vector3::zeros();
+            db[i] = h;
+            let plus = propagate_with_bias(q0, t0, t1, &imu, &(b + db)).q_ecef_imu;
+            let minus = propagate_with_bias(q0, t0, t1, &imu, &(b - db)).q_ecef_imu;
+            // Left (ECEF) error: q(b + db) = exp(dtheta) q(b).
+            let numeric = ((plus * minus.inverse()).scaled_axis()) / (2.0 * h);
+            let analytic = -base.bias_to_attitude.column(i);
+            // The sensitivity leaves out the Earth's turn (7e-5 rad over the interval).
+            assert!((numeric - analytic).norm() < 2e-4 * analytic.norm(), "{i}: {numeric} {analytic}");
+        }
+        // Without rotation it is the interval times the attitude.
+        let still = samples(200.0, 5.0, |_| Vector3::zeros());
+        let p = propagate_with_bias(q0, 1.0, 1.5, &still, &Vector3::zeros());
+        assert!((p.bias_to_attitude - q0.to_rotation_matrix().into_inner() * 0.5).norm() < 1e-12);
     }
 }

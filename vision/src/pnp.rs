@@ -23,11 +23,9 @@ pub struct RefineOptions {
     /// Huber loss on each point's reprojection error (pixels): quadratic below
     /// this, linear above. `None`: plain least squares.
     pub huber_px: Option<f64>,
-    /// Attitude prior: `(q_ecef_cam, sigma_rad)` adds the residual
-    /// `log(q_ecef_cam * q_prior^-1) / sigma` (rotation vector, ECEF frame),
-    /// e.g. a gyro-propagated attitude that pins tilt where a narrow-FOV nadir
-    /// view cannot tell tilt from translation.
-    pub prior: Option<(UnitQuaternion<f64>, f64)>,
+    /// Attitude prior, e.g. a gyro-propagated attitude that pins tilt where a
+    /// narrow-FOV nadir view cannot tell tilt from translation.
+    pub prior: Option<AttitudePrior>,
     /// Standard deviation of a pixel coordinate (px): pixel residuals are
     /// divided by it, so it weighs them against the prior and scales the
     /// covariance.
@@ -37,6 +35,47 @@ pub struct RefineOptions {
 impl Default for RefineOptions {
     fn default() -> Self {
         Self { max_iterations: 50, huber_px: None, prior: None, pixel_sigma: 1.0 }
+    }
+}
+
+/// A prior on the attitude: adds the residual `W log(q * q_prior^-1)`
+/// (rotation vector in ECEF) with `W^T W = covariance^-1`, so a filter can
+/// pass on the full attitude covariance of the frames before (tight where
+/// they saw it well, loose where they did not).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AttitudePrior {
+    pub q_ecef_cam: UnitQuaternion<f64>,
+    /// Covariance of the prior's error (rad^2, rotation vector in ECEF).
+    pub covariance: Matrix3<f64>,
+}
+
+impl AttitudePrior {
+    /// The same standard deviation (rad) about every axis.
+    pub fn isotropic(q_ecef_cam: UnitQuaternion<f64>, sigma_rad: f64) -> Self {
+        Self { q_ecef_cam, covariance: Matrix3::identity() * (sigma_rad * sigma_rad) }
+    }
+
+    /// `W` with `W^T W = covariance^-1`; `None` unless the covariance is
+    /// finite, symmetric and positive definite.
+    pub fn sqrt_information(&self) -> Option<Matrix3<f64>> {
+        let p = self.covariance;
+        let scale = p.abs().max();
+        if !p.iter().all(|x| x.is_finite())
+            || !(scale > 0.0)
+            || (p - p.transpose()).abs().max() > 1e-9 * scale
+        {
+            return None;
+        }
+        // covariance = L L^T  =>  covariance^-1 = L^-T L^-1, so W = L^-1.
+        let l = p.cholesky()?.l();
+        l.solve_lower_triangular(&Matrix3::identity())
+    }
+
+    /// Squared Mahalanobis distance of `q_ecef_cam` from the prior (chi-square
+    /// with 3 degrees of freedom when the prior is right).
+    pub fn mahalanobis2(&self, q_ecef_cam: &UnitQuaternion<f64>) -> Option<f64> {
+        let w = self.sqrt_information()?;
+        Some((w * rotation_vector(&(q_ecef_cam * self.q_ecef_cam.inverse()))).norm_squared())
     }
 }
 
@@ -73,7 +112,8 @@ impl Refined {
 /// pixels, through the full distortion model, analytic Jacobian via
 /// [`trn_camera::Distortion::jacobian`]), from `initial`. `None` when there
 /// are fewer than 3 matches, lengths differ, an option is invalid
-/// (`pixel_sigma`, Huber threshold or prior sigma not positive), a point is
+/// (`pixel_sigma` or Huber threshold not positive, prior covariance not
+/// positive definite), a point is
 /// behind the camera at `initial`, or the pose is not determined at the
 /// solution (e.g. all points identical).
 pub fn refine_pose(
@@ -87,11 +127,13 @@ pub fn refine_pose(
     if n < 3 || points_ecef.len() != n || !(opts.pixel_sigma > 0.0 && opts.pixel_sigma.is_finite()) {
         return None;
     }
-    if opts.huber_px.is_some_and(|k| !(k > 0.0))
-        || opts.prior.is_some_and(|(_, s)| !(s > 0.0 && s.is_finite()))
-    {
+    if opts.huber_px.is_some_and(|k| !(k > 0.0)) {
         return None;
     }
+    let prior = match &opts.prior {
+        Some(p) => Some((p.q_ecef_cam, p.sqrt_information()?)),
+        None => None,
+    };
     // Work relative to the initial position (precision at ECEF magnitudes).
     let origin = initial.position;
     let problem = Problem {
@@ -100,7 +142,7 @@ pub fn refine_pose(
         local: points_ecef.iter().map(|p| p - origin.0).collect(),
         huber_px: opts.huber_px,
         inv_sigma2: 1.0 / (opts.pixel_sigma * opts.pixel_sigma),
-        prior: opts.prior,
+        prior,
     };
     let mut state = State { q: initial.q_ecef_cam, c: Vector3::zeros() };
     let mut lin = problem.linearize(&state)?;
@@ -274,7 +316,8 @@ struct Problem<'a> {
     local: Vec<Vector3<f64>>,
     huber_px: Option<f64>,
     inv_sigma2: f64,
-    prior: Option<(UnitQuaternion<f64>, f64)>,
+    /// Prior attitude and its square-root information `W`.
+    prior: Option<(UnitQuaternion<f64>, Matrix3<f64>)>,
 }
 
 impl Problem<'_> {
@@ -320,10 +363,10 @@ impl Problem<'_> {
             h += j.transpose() * j * ws;
             g += j.transpose() * r * ws;
         }
-        if let Some((q_prior, sigma)) = self.prior {
+        if let Some((q_prior, w)) = self.prior {
             let phi = rotation_vector(&(state.q * q_prior.inverse()));
-            let r = phi / sigma;
-            let jp = inverse_left_jacobian(&phi) / sigma;
+            let r = w * phi;
+            let jp = w * inverse_left_jacobian(&phi);
             cost += r.norm_squared();
             let mut hp = h.fixed_view_mut::<3, 3>(0, 0);
             hp += jp.transpose() * jp;
@@ -342,7 +385,7 @@ impl Problem<'_> {
 
 /// Rotation vector (axis * angle, angle in `[0, pi]`) of a unit quaternion,
 /// accurate for small angles (nalgebra's `scaled_axis` goes through `acos`).
-pub(crate) fn rotation_vector(q: &UnitQuaternion<f64>) -> Vector3<f64> {
+pub fn rotation_vector(q: &UnitQuaternion<f64>) -> Vector3<f64> {
     let (w, v) = if q.w < 0.0 { (-q.w, -q.imag()) } else { (q.w, q.imag()) };
     let s = v.norm();
     if s < 1e-300 {
@@ -452,7 +495,7 @@ mod tests {
             local: scene.points.iter().map(|p| p - origin.0).collect(),
             huber_px: None,
             inv_sigma2: 1.0,
-            prior: Some((q_prior, 0.01)),
+            prior: Some((q_prior, AttitudePrior::isotropic(q_prior, 0.01).sqrt_information().unwrap())),
         };
         let start = perturbed(&mut rng, &scene.pose, 30.0, 0.5);
         let state = State { q: start.q_ecef_cam, c: start.position.0 - origin.0 };
@@ -506,7 +549,10 @@ mod tests {
             let sigma = 0.01f64.to_radians();
             let noise = Vector3::new(rng.gaussian(), rng.gaussian(), rng.gaussian()) * sigma;
             let prior = UnitQuaternion::from_scaled_axis(noise) * scene.pose.q_ecef_cam;
-            let opts = RefineOptions { prior: Some((prior, sigma)), ..RefineOptions::default() };
+            let opts = RefineOptions {
+                prior: Some(AttitudePrior::isotropic(prior, sigma)),
+                ..RefineOptions::default()
+            };
             let start = perturbed(&mut rng, &scene.pose, 100.0, 1.0);
             let r = refine_pose(&camera, &scene.pixels, &scene.points, &start, &opts).unwrap();
             let e = error(&r.pose, &scene.pose);
@@ -515,6 +561,80 @@ mod tests {
         let nees_prior = sum / trials as f64;
         println!("refine 1 px noise, 32 deg 30 km, 0.01 deg prior: mean NEES/6 = {nees_prior:.3}");
         assert!((0.5..2.0).contains(&nees_prior), "{nees_prior}");
+    }
+
+    #[test]
+    fn anisotropic_prior_is_weighed_by_its_covariance() {
+        // A prior tight about one random axis and loose about the others: the
+        // estimate's error about that axis follows the prior, and the
+        // covariance stays honest (NEES about 1).
+        let camera = CameraModel::from_fov(1024, 768, 32.0);
+        let mut rng = Rng::new(21);
+        let trials = 200;
+        let (mut nees, mut tight_err2, mut loose_err2) = (0.0, 0.0, 0.0);
+        for _ in 0..trials {
+            let mut scene = nadir_scene(&mut rng, &camera, 30_000.0, 60, 500.0, 3.0);
+            add_noise(&mut rng, &mut scene.pixels, 1.0);
+            let axes = UnitQuaternion::from_scaled_axis(random_unit(&mut rng) * 2.0).to_rotation_matrix();
+            let sd = Vector3::new(0.001f64.to_radians(), 0.05f64.to_radians(), 0.05f64.to_radians());
+            let cov =
+                axes.matrix() * Matrix3::from_diagonal(&sd.component_mul(&sd)) * axes.matrix().transpose();
+            let noise =
+                axes * Vector3::new(rng.gaussian() * sd.x, rng.gaussian() * sd.y, rng.gaussian() * sd.z);
+            let prior = AttitudePrior {
+                q_ecef_cam: UnitQuaternion::from_scaled_axis(noise) * scene.pose.q_ecef_cam,
+                covariance: cov,
+            };
+            let w = prior.sqrt_information().unwrap();
+            assert!((w.transpose() * w * cov - Matrix3::identity()).abs().max() < 1e-6);
+            let opts = RefineOptions { prior: Some(prior), ..RefineOptions::default() };
+            let start = perturbed(&mut rng, &scene.pose, 100.0, 1.0);
+            let r = refine_pose(&camera, &scene.pixels, &scene.points, &start, &opts).unwrap();
+            let e = error(&r.pose, &scene.pose);
+            nees += (e.transpose() * r.covariance.try_inverse().unwrap() * e)[(0, 0)] / 6.0;
+            let de = axes.inverse() * e.fixed_rows::<3>(0);
+            tight_err2 += de.x * de.x;
+            loose_err2 += de.y * de.y;
+        }
+        let nees = nees / trials as f64;
+        let (tight, loose) = ((tight_err2 / trials as f64).sqrt(), (loose_err2 / trials as f64).sqrt());
+        println!(
+            "anisotropic prior (0.001/0.05/0.05 deg): mean NEES/6 = {nees:.3}, RMS error {:.4} deg about \
+             the tight axis, {:.4} deg about a loose one",
+            tight.to_degrees(),
+            loose.to_degrees()
+        );
+        assert!((0.5..2.0).contains(&nees), "{nees}");
+        assert!(tight < 0.0015f64.to_radians(), "{}", tight.to_degrees());
+        assert!(loose > 3.0 * tight);
+    }
+
+    #[test]
+    fn prior_covariance_must_be_positive_definite() {
+        let camera = CameraModel::from_fov(1024, 768, 45.0);
+        let mut rng = Rng::new(22);
+        let scene = nadir_scene(&mut rng, &camera, 8000.0, 20, 800.0, 10.0);
+        let q = scene.pose.q_ecef_cam;
+        let bad = [
+            Matrix3::zeros(),
+            Matrix3::from_diagonal(&Vector3::new(1e-6, -1e-6, 1e-6)),
+            Matrix3::new(1e-6, 5e-7, 0.0, 0.0, 1e-6, 0.0, 0.0, 0.0, 1e-6),
+            Matrix3::identity() * f64::NAN,
+        ];
+        for cov in bad {
+            let opts = RefineOptions {
+                prior: Some(AttitudePrior { q_ecef_cam: q, covariance: cov }),
+                ..RefineOptions::default()
+            };
+            assert!(
+                refine_pose(&camera, &scene.pixels, &scene.points, &scene.pose, &opts).is_none(),
+                "{cov}"
+            );
+        }
+        let good = AttitudePrior::isotropic(q, 1e-3);
+        assert!(good.mahalanobis2(&q).unwrap() < 1e-20);
+        let off = UnitQuaternion::from_scaled_axis(Vector3::new(3e-3, 0.0, 0.0)) * q;
+        assert!((good.mahalanobis2(&off).unwrap() - 9.0).abs() < 1e-6);
     }
 
     #[test]
@@ -532,7 +652,10 @@ mod tests {
                 .expect("refined without prior");
             let noise = Vector3::new(rng.gaussian(), rng.gaussian(), rng.gaussian()) * sigma;
             let prior = UnitQuaternion::from_scaled_axis(noise) * scene.pose.q_ecef_cam;
-            let opts = RefineOptions { prior: Some((prior, sigma)), ..RefineOptions::default() };
+            let opts = RefineOptions {
+                prior: Some(AttitudePrior::isotropic(prior, sigma)),
+                ..RefineOptions::default()
+            };
             let with = refine_pose(&camera, &scene.pixels, &scene.points, &start, &opts).expect("refined");
             err_free += free.pose.position.distance_m(&scene.pose.position).powi(2);
             err_prior += with.pose.position.distance_m(&scene.pose.position).powi(2);

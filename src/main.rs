@@ -204,6 +204,10 @@ struct NavigateArgs {
     /// Gyro bias uncertainty assumed by the attitude filter at the start (deg/h, 1 sigma).
     #[arg(long, default_value_t = 20.0)]
     gyro_bias: f64,
+    /// Write a picture per processed frame here: inliers green, outliers red,
+    /// where the pose guess predicted each landmark blue with a line to the match.
+    #[arg(long)]
+    matches_dir: Option<PathBuf>,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -379,7 +383,11 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
     params.max_landmarks = a.max_landmarks;
     params.gyro_arw_deg_sqrt_s = a.gyro_arw / 60.0;
     params.gyro_bias_deg_s = a.gyro_bias / 3600.0;
-    let opts = trn_navigator::RunOptions { rate_hz: a.rate, params };
+    if let Some(dir) = &a.matches_dir {
+        std::fs::create_dir_all(dir)
+            .map_err(|e| anyhow::anyhow!("invalid option --matches-dir {}: {e}", dir.display()))?;
+    }
+    let opts = trn_navigator::RunOptions { rate_hz: a.rate, params, matches_dir: a.matches_dir.clone() };
     let bar = indicatif::ProgressBar::new(flight.frames.len() as u64);
     bar.set_style(
         indicatif::ProgressStyle::with_template(
@@ -387,20 +395,23 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
         )
         .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
     );
-    let (records, matches, report) =
-        trn_navigator::run_flight(&flight, &source, &opts, |i| bar.set_position(i as u64))?;
+    let run = trn_navigator::run_flight(&flight, &source, &opts, |i| bar.set_position(i as u64))?;
     bar.finish_and_clear();
-    trn_flight::write_nav_records(&a.out, &records)?;
+    trn_flight::write_nav_records(&a.out, &run.records)?;
     let matches_path = a.out.with_file_name("matches.csv");
-    trn_flight::write_match_records(&matches_path, &matches)?;
+    trn_flight::write_match_records(&matches_path, &run.matches)?;
+    let cov_path = a.out.with_file_name("covariance.csv");
+    trn_flight::write_pose_covariances(&cov_path, &run.covariances)?;
+    let report = run.report;
     tracing::info!(
-        "{} of {} frames processed, {} fixes, median {:.1} ms per frame; wrote {} and {}",
+        "{} of {} frames processed, {} fixes, median {:.1} ms per frame; wrote {}, {} and {}",
         report.processed,
         report.frames,
         report.fixes,
         report.median_ms,
         a.out.display(),
-        matches_path.display()
+        matches_path.display(),
+        cov_path.display()
     );
     println!("{}", serde_json::to_string_pretty(&report)?);
     Ok(())

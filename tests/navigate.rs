@@ -98,18 +98,68 @@ fn navigates_a_simulated_flight_to_metres() {
     assert!(share >= 0.9, "fix share {share}");
     assert!(mean < 10.0, "mean error {mean} m");
     assert!(att < 0.1, "attitude error {att} deg");
-    // matches.csv sits next to poses.csv, one row per correlation match.
-    let matches = std::fs::read_to_string(s.root.join("matches.csv")).unwrap();
-    assert!(matches.starts_with("t,landmark,u,v,pred_u,pred_v,residual_px,inlier\n"));
-    assert!(matches.lines().count() > 13 * 8);
+    // matches.csv sits next to poses.csv, one row per correlation match,
+    // with the landmark's ECEF position: the truth pose projects an inlier's
+    // landmark where it was found.
+    let text = std::fs::read_to_string(s.root.join("matches.csv")).unwrap();
+    assert!(text.starts_with("t,landmark,u,v,pred_u,pred_v,residual_px,inlier,x_m,y_m,z_m\n"));
+    let matches = trn_flight::read_match_records(&s.root.join("matches.csv")).unwrap();
+    assert!(matches.len() > 13 * 8);
+    let flight = trn_flight::Flight::open(&s.flight).unwrap();
+    let mut off: Vec<f64> = matches
+        .iter()
+        .filter(|m| m.inlier)
+        .map(|m| {
+            let truth = flight.truth_at(m.t).unwrap();
+            let pose = trn_camera::CameraPose::new(truth.position.to_ecef(), truth.q_ecef_cam);
+            let px = pose.project(&flight.camera.model, &m.landmark_ecef.expect("landmark ECEF")).unwrap();
+            ((px.u - m.u).powi(2) + (px.v - m.v).powi(2)).sqrt()
+        })
+        .collect();
+    off.sort_by(f64::total_cmp);
+    let (median, worst) = (off[off.len() / 2], off[off.len() - 1]);
+    println!("inliers against the truth projection: median {median:.2} px, worst {worst:.2} px");
+    // Inliers are within 2 px of the solved pose, which is itself off by a little.
+    assert!(median < 0.5 && worst < 4.0, "{median} {worst} px");
+    // covariance.csv: one row per fix, positive standard deviations that
+    // are about the size of the errors.
+    let cov = std::fs::read_to_string(s.root.join("covariance.csv")).unwrap();
+    let mut lines = cov.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    assert_eq!(header.len(), 7 + 21);
+    assert_eq!(header[1], "sd_east_m");
+    let rows: Vec<Vec<f64>> = lines.map(|l| l.split(',').map(|x| x.parse().unwrap()).collect()).collect();
+    let fixes = std::fs::read_to_string(&poses).unwrap().lines().filter(|l| l.contains(",fix,")).count();
+    assert_eq!(rows.len(), fixes);
+    let sd_mean =
+        rows.iter().map(|r| (r[1] * r[1] + r[2] * r[2] + r[3] * r[3]).sqrt()).sum::<f64>() / fixes as f64;
+    println!("mean predicted 3D sd {sd_mean:.2} m against mean error {mean:.2} m");
+    assert!(rows.iter().all(|r| r[1..7].iter().all(|&x| x > 0.0 && x.is_finite())));
+    assert!(sd_mean > 0.1 * mean && sd_mean < 10.0 * mean, "{sd_mean} {mean}");
 
     // At 2 images per second only every other frame is processed while fixes
     // are accepted.
+    // With --matches-dir, one picture per processed frame, named after its image.
     let half = s.root.join("half.csv");
-    let o = navigate(&s, &half, &["--rate", "2", "--no-gyro"]);
+    let pics = s.root.join("pictures/of/matches");
+    let o = navigate(&s, &half, &["--rate", "2", "--no-gyro", "--matches-dir", pics.to_str().unwrap()]);
     assert!(o.status.success(), "navigate failed: {}", stderr(&o));
-    let rows = std::fs::read_to_string(&half).unwrap().lines().count() - 1;
+    let csv = std::fs::read_to_string(&half).unwrap();
+    let rows = csv.lines().count() - 1;
     assert!((7..13).contains(&rows), "{rows} rows at 2 Hz");
+    let mut names: Vec<String> =
+        std::fs::read_dir(&pics).unwrap().map(|e| e.unwrap().file_name().into_string().unwrap()).collect();
+    names.sort();
+    assert_eq!(names.len(), rows, "{names:?}");
+    let frames = std::fs::read_to_string(s.flight.join("frames.csv")).unwrap();
+    for name in &names {
+        let stem = name.strip_suffix(".png").expect("png");
+        assert!(frames.contains(&format!("{stem}.")), "{name} is no frame's image");
+        let pic = image::open(pics.join(name)).unwrap().to_rgb8();
+        assert_eq!(pic.dimensions(), (320, 240));
+        // Inliers are drawn green.
+        assert!(pic.pixels().any(|p| p.0 == [40, 220, 60]), "{name} has no inlier mark");
+    }
 }
 
 #[test]

@@ -16,7 +16,7 @@ use std::path::{Path, PathBuf};
 use nalgebra::{UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 use trn_camera::{quat_from_wxyz, quat_to_wxyz, CameraConfig};
-use trn_geodesy::Geodetic;
+use trn_geodesy::{Ecef, Geodetic};
 
 /// An error reading or writing a flight file: the file, the line (1-based,
 /// header = 1) when one is concerned, and what was wrong.
@@ -589,6 +589,57 @@ pub fn write_nav_records(path: &Path, records: &[NavRecord]) -> Result<()> {
     write_csv_atomic(path, NAV_HEADER, records.iter().map(nav_record_line))
 }
 
+/// The covariance of an accepted fix (`covariance.csv`, written by the
+/// navigator next to `poses.csv`): of the error `[dtheta; dp]`, attitude as a
+/// rotation vector (rad, `q_true = exp(dtheta) q_est`) and position (m), both
+/// in ECEF.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PoseCovariance {
+    pub t: f64,
+    /// Where the fix is (for the east/north/up standard deviations).
+    pub position: Geodetic,
+    pub ecef: nalgebra::Matrix6<f64>,
+}
+
+/// Standard deviations in the local frame, then the upper triangle of the
+/// ECEF covariance row by row (`c_i_j`, i <= j; 0-2 attitude, 3-5 position).
+pub fn covariance_header() -> String {
+    let mut h = "t,sd_east_m,sd_north_m,sd_up_m,sd_att_east_deg,sd_att_north_deg,sd_att_up_deg".to_string();
+    for i in 0..6 {
+        for j in i..6 {
+            h.push_str(&format!(",c_{i}_{j}"));
+        }
+    }
+    h
+}
+
+pub fn pose_covariance_line(c: &PoseCovariance) -> String {
+    let r = trn_geodesy::LocalFrame::at(c.position).r_ecef_enu();
+    let att = r.transpose() * c.ecef.fixed_view::<3, 3>(0, 0) * r;
+    let pos = r.transpose() * c.ecef.fixed_view::<3, 3>(3, 3) * r;
+    let sd = |m: &nalgebra::Matrix3<f64>, i: usize| m[(i, i)].max(0.0).sqrt();
+    let mut line = format!(
+        "{:.6},{:.3},{:.3},{:.3},{:.6},{:.6},{:.6}",
+        c.t,
+        sd(&pos, 0),
+        sd(&pos, 1),
+        sd(&pos, 2),
+        sd(&att, 0).to_degrees(),
+        sd(&att, 1).to_degrees(),
+        sd(&att, 2).to_degrees()
+    );
+    for i in 0..6 {
+        for j in i..6 {
+            line.push_str(&format!(",{:.6e}", c.ecef[(i, j)]));
+        }
+    }
+    line
+}
+
+pub fn write_pose_covariances(path: &Path, rows: &[PoseCovariance]) -> Result<()> {
+    write_csv_atomic(path, &covariance_header(), rows.iter().map(pose_covariance_line))
+}
+
 /// One correlation match of a processed frame (`matches.csv`, written by the
 /// navigator next to `poses.csv`; not part of the shared flight format).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -606,13 +657,17 @@ pub struct MatchRecord {
     /// Reprojection error under the final pose (px).
     pub residual_px: f64,
     pub inlier: bool,
+    /// The landmark's 3D position (ECEF), so a filter or smoother can use the
+    /// matches without the database (columns `x_m,y_m,z_m`, empty if unknown).
+    pub landmark_ecef: Option<Ecef>,
 }
 
-pub const MATCHES_HEADER: &str = "t,landmark,u,v,pred_u,pred_v,residual_px,inlier";
+pub const MATCHES_HEADER: &str = "t,landmark,u,v,pred_u,pred_v,residual_px,inlier,x_m,y_m,z_m";
 
 pub fn match_record_line(m: &MatchRecord) -> String {
+    let xyz = m.landmark_ecef.map_or(",,".to_string(), |p| format!("{:.3},{:.3},{:.3}", p.0.x, p.0.y, p.0.z));
     format!(
-        "{:.6},{},{:.3},{:.3},{:.3},{:.3},{:.4},{}",
+        "{:.6},{},{:.3},{:.3},{:.3},{:.3},{:.4},{},{xyz}",
         m.t, m.landmark, m.u, m.v, m.pred_u, m.pred_v, m.residual_px, m.inlier as u8
     )
 }
@@ -628,9 +683,29 @@ pub fn read_match_records(path: &Path) -> Result<Vec<MatchRecord>> {
         .iter()
         .map(|n| tab.column(n))
         .collect::<Result<_>>()?;
+    // Files written before the landmark columns have none.
+    let xyz: Option<Vec<usize>> = ["x_m", "y_m", "z_m"].iter().map(|n| tab.optional_column(n)).collect();
     let mut out = Vec::with_capacity(tab.rows.len());
     for (line, rec) in &tab.rows {
         let n = |k: usize| tab.number(*line, rec, c[k]);
+        let landmark_ecef = match &xyz {
+            Some(x) => {
+                let v: Vec<Option<f64>> =
+                    x.iter().map(|&k| tab.optional_number(*line, rec, k)).collect::<Result<_>>()?;
+                match (v[0], v[1], v[2]) {
+                    (Some(a), Some(b), Some(c)) => Some(Ecef::new(a, b, c)),
+                    (None, None, None) => None,
+                    _ => {
+                        return Err(FlightError::new(
+                            path,
+                            Some(*line),
+                            "fields x_m, y_m, z_m: give all three or none".to_string(),
+                        ))
+                    }
+                }
+            }
+            None => None,
+        };
         let landmark = n(1)?;
         let inlier = match n(7)? {
             0.0 => false,
@@ -652,6 +727,7 @@ pub fn read_match_records(path: &Path) -> Result<Vec<MatchRecord>> {
             pred_v: n(5)?,
             residual_px: n(6)?,
             inlier,
+            landmark_ecef,
         });
     }
     Ok(out)
@@ -750,5 +826,51 @@ mod tests {
         assert!((d0 - d1).abs() < 1e-6);
         assert!(interpolate_pose(&rows, 2.5).is_none());
         assert!(interpolate_pose(&rows, -0.1).is_none());
+    }
+
+    #[test]
+    fn matches_round_trip_with_and_without_landmark_positions() {
+        let dir = tempfile::tempdir().unwrap();
+        let m = |landmark_ecef| MatchRecord {
+            t: 0.25,
+            landmark: 7,
+            u: 10.5,
+            v: 20.25,
+            pred_u: 10.0,
+            pred_v: 20.0,
+            residual_px: 0.559,
+            inlier: true,
+            landmark_ecef,
+        };
+        let rows = [m(Some(Ecef::new(-1284512.125, -4716392.5, 4079688.0))), m(None)];
+        let path = dir.path().join("matches.csv");
+        write_match_records(&path, &rows).unwrap();
+        assert_eq!(read_match_records(&path).unwrap(), rows);
+        // Files from before the landmark columns still read.
+        std::fs::write(
+            &path,
+            "t,landmark,u,v,pred_u,pred_v,residual_px,inlier\n0.25,7,10.5,20.25,10,20,0.559,1\n",
+        )
+        .unwrap();
+        assert_eq!(read_match_records(&path).unwrap(), vec![m(None)]);
+        // Half a position is an error that names the fields.
+        std::fs::write(&path, format!("{MATCHES_HEADER}\n0.25,7,10.5,20.25,10,20,0.559,1,1,2,\n")).unwrap();
+        let e = read_match_records(&path).unwrap_err().to_string();
+        assert!(e.contains("x_m, y_m, z_m") && e.contains("matches.csv"), "{e}");
+    }
+
+    #[test]
+    fn covariance_rows_give_local_standard_deviations() {
+        // 1 m^2 east only, at the equator / prime meridian (east = ECEF y).
+        let mut ecef = nalgebra::Matrix6::zeros();
+        ecef[(4, 4)] = 4.0;
+        ecef[(2, 2)] = 1e-6;
+        let c = PoseCovariance { t: 1.0, position: Geodetic::new(0.0, 0.0, 100.0), ecef };
+        let line = pose_covariance_line(&c);
+        let v: Vec<f64> = line.split(',').map(|x| x.parse().unwrap()).collect();
+        assert_eq!(v.len(), covariance_header().split(',').count());
+        assert!((v[1] - 2.0).abs() < 1e-9 && v[2].abs() < 1e-9 && v[3].abs() < 1e-9, "{line}");
+        // ECEF z at the equator is north.
+        assert!((v[5] - 1e-3f64.to_degrees()).abs() < 1e-6, "{line}");
     }
 }

@@ -16,13 +16,16 @@ pub mod attitude;
 pub mod footprint;
 pub mod image;
 pub mod nav;
+pub mod picture;
 pub mod predict;
 pub mod propagate;
 pub mod source;
 
 use std::path::{Path, PathBuf};
 
-use trn_flight::{FixStatus, Flight, MatchRecord, NavRecord};
+use ::image::ImageEncoder;
+
+use trn_flight::{FixStatus, Flight, MatchRecord, NavRecord, PoseCovariance};
 
 pub use nav::{NavParams, Navigator};
 pub use source::{DbSource, LandmarkSource, SourceError};
@@ -36,6 +39,8 @@ pub enum NavError {
     Image { path: PathBuf, reason: String },
     #[error("{0}")]
     Source(#[from] SourceError),
+    #[error("{}: {reason}", path.display())]
+    Picture { path: PathBuf, reason: String },
 }
 
 /// What `trn navigate` is asked to do.
@@ -44,6 +49,9 @@ pub struct RunOptions {
     /// Images per second taken from the flight (`None`: every image).
     pub rate_hz: Option<f64>,
     pub params: NavParams,
+    /// Write a match picture per processed frame here ([`picture`]), named
+    /// after the frame's image (`.png`).
+    pub matches_dir: Option<PathBuf>,
 }
 
 /// Summary of a run.
@@ -68,16 +76,40 @@ pub fn load_grey(path: &Path) -> Result<image::GreyImage, NavError> {
     })
 }
 
-/// Navigates a whole flight; returns the rows of `poses.csv` and `matches.csv`.
+/// Writes a picture as PNG (temp file, then rename).
+fn write_picture(path: &Path, pic: &::image::RgbImage) -> Result<(), NavError> {
+    let err = |reason: String| NavError::Picture { path: path.into(), reason };
+    let mut png = Vec::new();
+    ::image::codecs::png::PngEncoder::new_with_quality(
+        &mut png,
+        ::image::codecs::png::CompressionType::Fast,
+        ::image::codecs::png::FilterType::Sub,
+    )
+    .write_image(pic.as_raw(), pic.width(), pic.height(), ::image::ExtendedColorType::Rgb8)
+    .map_err(|e| err(e.to_string()))?;
+    trn_flight::write_atomic(path, |w| w.write_all(&png)).map_err(|e| err(e.to_string()))
+}
+
+/// What a run produced: the rows of `poses.csv`, `matches.csv` and
+/// `covariance.csv`.
+pub struct RunOutput {
+    pub records: Vec<NavRecord>,
+    pub matches: Vec<MatchRecord>,
+    pub covariances: Vec<PoseCovariance>,
+    pub report: RunReport,
+}
+
+/// Navigates a whole flight.
 pub fn run_flight(
     flight: &Flight,
     source: &dyn LandmarkSource,
     opts: &RunOptions,
     mut progress: impl FnMut(usize),
-) -> Result<(Vec<NavRecord>, Vec<MatchRecord>, RunReport), NavError> {
+) -> Result<RunOutput, NavError> {
     let mut nav = Navigator::new(source, &flight.camera, &flight.imu, &flight.init, opts.params.clone())?;
     let mut records = Vec::new();
     let mut matches = Vec::new();
+    let mut covariances = Vec::new();
     let mut next_due = f64::NEG_INFINITY;
     for (i, frame) in flight.frames.iter().enumerate() {
         progress(i);
@@ -98,13 +130,21 @@ pub fn run_flight(
                 ),
             });
         }
+        let picture_of = opts.matches_dir.as_ref().map(|dir| (dir, img.clone()));
         let r = nav.process(frame.t, img);
+        if let Some((dir, img)) = picture_of {
+            let name =
+                frame.image.file_stem().map(|s| s.to_os_string()).unwrap_or_else(|| format!("{i:06}").into());
+            let path = dir.join(name).with_extension("png");
+            write_picture(&path, &picture::draw_matches(&img, &r.matches, &r.guess_px))?;
+        }
         next_due = match (r.record.status, opts.rate_hz) {
             (FixStatus::Fix, Some(rate)) => frame.t + 1.0 / rate,
             _ => f64::NEG_INFINITY,
         };
         records.push(r.record);
         matches.extend(r.matches);
+        covariances.extend(r.covariance);
     }
     let mut ms: Vec<f64> = records.iter().map(|r| r.ms).collect();
     ms.sort_by(f64::total_cmp);
@@ -114,5 +154,5 @@ pub fn run_flight(
         fixes: records.iter().filter(|r| r.status == FixStatus::Fix).count(),
         median_ms: ms.get(ms.len() / 2).copied().unwrap_or(0.0),
     };
-    Ok((records, matches, report))
+    Ok(RunOutput { records, matches, covariances, report })
 }

@@ -6,7 +6,7 @@ use std::time::Instant;
 use nalgebra::{Matrix3, Matrix6, UnitQuaternion, Vector3};
 use tracing::debug;
 use trn_camera::{CameraConfig, CameraModel, CameraPose, Pixel};
-use trn_flight::{FixStatus, ImuSample, MatchRecord, NavRecord, TimedPose};
+use trn_flight::{FixStatus, ImuSample, MatchRecord, NavRecord, PoseCovariance, TimedPose};
 use trn_landmark::Template;
 use trn_vision::ncc::{self, ImageView, NccParams};
 use trn_vision::pnp::{refine_pose, rotation_vector, AttitudePrior, RefineOptions};
@@ -84,6 +84,10 @@ impl Default for NavParams {
 pub struct FrameResult {
     pub record: NavRecord,
     pub matches: Vec<MatchRecord>,
+    /// Where the pose guess put each match's landmark (full-resolution pixels).
+    pub guess_px: Vec<Option<Pixel>>,
+    /// The covariance of an accepted fix.
+    pub covariance: Option<PoseCovariance>,
 }
 
 /// Terrain relative navigation over one flight.
@@ -227,7 +231,8 @@ impl<'a> Navigator<'a> {
         let (guess, propagated) = self.predict(t);
         let outcome = self.solve(t, &guess, &propagated, image);
         let ms = start.elapsed().as_secs_f64() * 1e3;
-        let (status, inliers, n_matches, matches) = match outcome {
+        let mut covariance = None;
+        let (status, inliers, n_matches, matches, guess_px) = match outcome {
             Ok(sol) => {
                 let jump = self
                     .last_fix
@@ -247,6 +252,11 @@ impl<'a> Navigator<'a> {
                     // The covariance of a fix from few matches is pessimistic;
                     // the next search only needs to cover a plausible miss.
                     self.sigma_m = sol.sigma_m.clamp(2.0, 200.0);
+                    covariance = Some(PoseCovariance {
+                        t,
+                        position: sol.pose.position.to_geodetic(),
+                        ecef: sol.covariance,
+                    });
                     if !self.params.use_gyro || sol.prior_loosened {
                         self.filter.reset_attitude(&propagated, &sol.att_cov);
                     } else {
@@ -275,11 +285,11 @@ impl<'a> Navigator<'a> {
                     self.carry(t, guess, propagated);
                 }
                 let status = if accepted { FixStatus::Fix } else { FixStatus::Propagated };
-                (status, sol.inliers, sol.n_matches, sol.records)
+                (status, sol.inliers, sol.n_matches, sol.records, sol.guess_px)
             }
             Err(n) => {
                 self.carry(t, guess, propagated);
-                (FixStatus::Propagated, 0, n, Vec::new())
+                (FixStatus::Propagated, 0, n, Vec::new(), Vec::new())
             }
         };
         let g = self.pose.position.to_geodetic();
@@ -298,6 +308,8 @@ impl<'a> Navigator<'a> {
                     m
                 })
                 .collect(),
+            guess_px,
+            covariance,
         }
     }
 
@@ -413,7 +425,12 @@ impl<'a> Navigator<'a> {
         if let Some(h) = sol.mean_landmark_h {
             self.terrain_h_m = h;
         }
-        sol.records.sort_by_key(|r| r.landmark);
+        // Sorted by landmark, with where the guess put each one.
+        let mut order: Vec<usize> = (0..sol.records.len()).collect();
+        order.sort_by_key(|&i| sol.records[i].landmark);
+        sol.guess_px =
+            order.iter().map(|&i| guess.project(&self.camera, &trn_geodesy::Ecef(sol.points[i]))).collect();
+        sol.records = order.iter().map(|&i| sol.records[i]).collect();
         Ok(sol)
     }
 
@@ -538,6 +555,7 @@ impl<'a> Navigator<'a> {
                 pred_v: q.v,
                 residual_px: res.min(1e6),
                 inlier: inl,
+                landmark_ecef: Some(trn_geodesy::Ecef(points[i])),
             });
         }
         let sigma_m = refined.position_covariance().trace().max(0.0).sqrt();
@@ -546,9 +564,12 @@ impl<'a> Navigator<'a> {
             inliers,
             n_matches: n,
             records,
+            points,
+            guess_px: Vec::new(),
             sigma_m,
             att_cov: refined.attitude_covariance(),
             pos_cov: refined.position_covariance(),
+            covariance: refined.covariance,
             prior_loosened,
             mean_landmark_h: (inliers > 0).then(|| h_sum / inliers as f64),
         })
@@ -618,10 +639,16 @@ struct Solution {
     inliers: usize,
     n_matches: usize,
     records: Vec<MatchRecord>,
+    /// Landmark (ECEF) of each record.
+    points: Vec<Vector3<f64>>,
+    /// Where the frame's pose guess put each record's landmark (after sorting).
+    guess_px: Vec<Option<Pixel>>,
     sigma_m: f64,
     /// Posterior attitude covariance (prior included).
     att_cov: Matrix3<f64>,
     pos_cov: Matrix3<f64>,
+    /// Of `[dtheta; dp]` (see `trn_vision::pnp`).
+    covariance: Matrix6<f64>,
     /// The image disagreed with the gyro prior; it was refined again without it.
     prior_loosened: bool,
     mean_landmark_h: Option<f64>,

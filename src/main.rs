@@ -196,7 +196,7 @@ struct NavigateArgs {
     #[arg(long, default_value_t = 450.0)]
     max_height_jump: f64,
     /// Landmarks correlated per image.
-    #[arg(long, default_value_t = 200)]
+    #[arg(long, default_value_t = 300)]
     max_landmarks: usize,
     /// Gyro angle random walk assumed by the attitude filter (deg/sqrt(h), 1 sigma).
     #[arg(long, default_value_t = 0.3)]

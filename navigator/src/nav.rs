@@ -63,7 +63,7 @@ impl Default for NavParams {
             horizon_step_px: 10.0,
             min_inliers: 8,
             max_height_jump_m: 450.0,
-            max_landmarks: 200,
+            max_landmarks: 300,
             grid: (8, 6),
             ransac_threshold_px: 2.0,
             ncc: NccParams { min_peak: 0.5, max_second_ratio: 0.92, min_template_std: 2.0 },

@@ -13,16 +13,19 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 pub mod footprint;
+pub mod http_source;
 pub mod image;
 pub mod nav;
 pub mod predict;
 pub mod propagate;
 pub mod source;
+pub mod view;
 
 use std::path::{Path, PathBuf};
 
 use trn_flight::{FixStatus, Flight, MatchRecord, NavRecord};
 
+pub use http_source::HttpSource;
 pub use nav::{NavParams, Navigator};
 pub use source::{DbSource, LandmarkSource, SourceError};
 

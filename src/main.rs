@@ -37,6 +37,10 @@ enum Command {
     Navigate(NavigateArgs),
     /// Score navigator poses.csv files against a flight's truth.csv (tables, JSON, plots).
     Evaluate(EvaluateArgs),
+    /// Serve a landmark database over HTTP (bounding-box, footprint and coverage queries).
+    Serve(ServeArgs),
+    /// Usable landmarks along a planned trajectory: JSON report, GeoJSON, PNG map.
+    Coverage(CoverageArgs),
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -172,8 +176,11 @@ struct SimulateArgs {
 #[derive(clap::Args)]
 struct NavigateArgs {
     /// Landmark database (from trn build).
+    #[arg(long, required_unless_present = "server", conflicts_with = "server")]
+    db: Option<PathBuf>,
+    /// Landmark server (trn serve) instead of --db, e.g. http://127.0.0.1:8080.
     #[arg(long)]
-    db: PathBuf,
+    server: Option<String>,
     /// Flight folder (flight format).
     #[arg(long)]
     flight: PathBuf,
@@ -272,6 +279,8 @@ fn main() -> ExitCode {
         Command::Simulate(a) => run_simulate(a),
         Command::Navigate(a) => run_navigate(a),
         Command::Evaluate(a) => run_evaluate(a),
+        Command::Serve(a) => run_serve(a),
+        Command::Coverage(a) => run_coverage(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -375,7 +384,11 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
         "invalid option --gyro-bias: must be deg/h > 0"
     );
     let flight = trn_flight::Flight::open(&a.flight)?;
-    let source = trn_navigator::DbSource::open(&a.db)?;
+    let source: Box<dyn trn_navigator::LandmarkSource> = match (&a.db, &a.server) {
+        (Some(db), _) => Box::new(trn_navigator::DbSource::open(db)?),
+        (None, Some(url)) => Box::new(trn_navigator::HttpSource::connect(url)?),
+        (None, None) => anyhow::bail!("give --db or --server"),
+    };
     let mut params = trn_navigator::NavParams { use_gyro: !a.no_gyro, ..Default::default() };
     params.alpha_max_deg = a.alpha_max;
     params.min_inliers = a.min_inliers;
@@ -395,7 +408,7 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
         )
         .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
     );
-    let run = trn_navigator::run_flight(&flight, &source, &opts, |i| bar.set_position(i as u64))?;
+    let run = trn_navigator::run_flight(&flight, source.as_ref(), &opts, |i| bar.set_position(i as u64))?;
     bar.finish_and_clear();
     trn_flight::write_nav_records(&a.out, &run.records)?;
     let matches_path = a.out.with_file_name("matches.csv");
@@ -478,5 +491,86 @@ fn run_evaluate(a: EvaluateArgs) -> anyhow::Result<()> {
     if let Some(path) = &a.json {
         trn_eval::write_json(path, &report)?;
     }
+    Ok(())
+}
+
+#[derive(clap::Args)]
+struct ServeArgs {
+    /// Landmark database (from trn build); opened read-only, reopened on SIGHUP.
+    #[arg(long)]
+    db: PathBuf,
+    /// Address to listen on (port 0: any free port; the bound address is printed).
+    #[arg(long, default_value = "127.0.0.1:8080")]
+    listen: String,
+    /// Read-only database connections (queries at once; default: 2 per core, at least 4).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=1024))]
+    connections: Option<u32>,
+    /// Requests handled at once; more wait their turn.
+    #[arg(long, default_value_t = 1024, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
+    max_concurrency: u32,
+    /// Requests taking longer are answered 408 (seconds).
+    #[arg(long, default_value_t = 30.0)]
+    timeout_s: f64,
+    /// Largest request body (bytes); larger ones are answered 413.
+    #[arg(long, default_value_t = 2 << 20)]
+    max_body_bytes: usize,
+    /// Also reload when the file at --db changes (checked every second).
+    #[arg(long)]
+    watch: bool,
+    /// Worker threads (default: all cores).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=1024))]
+    threads: Option<u32>,
+}
+
+#[derive(clap::Args)]
+struct CoverageArgs {
+    /// Landmark database (from trn build).
+    #[arg(long)]
+    db: PathBuf,
+    /// Planned trajectory: the JSON body of POST /v1/coverage (camera, poses or waypoints + attitude).
+    #[arg(long)]
+    plan: PathBuf,
+    /// Also write the report as GeoJSON.
+    #[arg(long)]
+    geojson: Option<PathBuf>,
+    /// Also draw the trajectory over the landmark footprints (PNG).
+    #[arg(long)]
+    png: Option<PathBuf>,
+    /// Width of the PNG map (px).
+    #[arg(long, default_value_t = 1024, value_parser = clap::value_parser!(u32).range(16..=16384))]
+    png_width: u32,
+}
+
+fn run_serve(a: ServeArgs) -> anyhow::Result<()> {
+    anyhow::ensure!(
+        a.timeout_s.is_finite() && a.timeout_s > 0.0,
+        "invalid option --timeout-s: must be a number of seconds > 0"
+    );
+    let mut o = trn_server::ServeOptions::new(a.db, a.listen);
+    if let Some(n) = a.connections {
+        o.connections = n as usize;
+    }
+    o.max_concurrency = a.max_concurrency as usize;
+    o.request_timeout = std::time::Duration::from_secs_f64(a.timeout_s);
+    o.max_body_bytes = a.max_body_bytes;
+    o.watch = a.watch;
+    o.threads = a.threads.map(|n| n as usize);
+    trn_server::serve(o, |addr| {
+        use std::io::Write;
+        // Scripts and tests read the bound address from this line.
+        println!("listening on http://{addr}");
+        let _ = std::io::stdout().flush();
+    })?;
+    Ok(())
+}
+
+fn run_coverage(a: CoverageArgs) -> anyhow::Result<()> {
+    let report = trn_server::coverage::run_cli(
+        &a.db,
+        &a.plan,
+        a.geojson.as_deref(),
+        a.png.as_deref().map(|p| (p, a.png_width)),
+    )?;
+    println!("{}", serde_json::to_string_pretty(&report)?);
     Ok(())
 }

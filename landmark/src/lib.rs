@@ -5,6 +5,8 @@
 //! the terrain geometry (a plane fit and a coarse height grid) the navigator needs
 //! to predict it into a camera image. Pure data, no I/O.
 
+pub mod wire;
+
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 use trn_geodesy::{Ecef, Enu, Geodetic, LocalFrame};

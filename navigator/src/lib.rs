@@ -14,12 +14,14 @@
 
 pub mod attitude;
 pub mod footprint;
+pub mod http_source;
 pub mod image;
 pub mod nav;
 pub mod picture;
 pub mod predict;
 pub mod propagate;
 pub mod source;
+pub mod view;
 
 use std::path::{Path, PathBuf};
 
@@ -27,6 +29,7 @@ use ::image::ImageEncoder;
 
 use trn_flight::{FixStatus, Flight, MatchRecord, NavRecord, PoseCovariance};
 
+pub use http_source::HttpSource;
 pub use nav::{NavParams, Navigator};
 pub use source::{DbSource, LandmarkSource, SourceError};
 

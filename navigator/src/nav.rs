@@ -128,31 +128,10 @@ const MIN_PATCH_PX: f64 = 12.0;
 /// Error of the velocity from two fixes (m/s, 1 sigma): their position
 /// errors over the gap, and acceleration since.
 const VELOCITY_KNOWN_SIGMA_M_S: f64 = 5.0;
-/// Smallest size (level pixels) of a template one level finer than the
-/// image's resolution for it to be used as well.
-const MIN_FINE_PATCH_PX: f64 = 14.0;
 /// A refined attitude farther than this (squared Mahalanobis distance, 3
 /// degrees of freedom, 99.9%) from the gyro prior means the two disagree:
 /// the frame is refined again with the prior loosened.
 const PRIOR_GATE_CHI2: f64 = 16.27;
-
-/// Terrain height near a position from the database (median template
-/// height within 20 km, for the first footprint) and the template side (px).
-fn terrain_near(
-    source: &dyn LandmarkSource,
-    levels: &[(u8, f64)],
-    at: &trn_geodesy::Geodetic,
-) -> Result<(f64, f64), crate::source::SourceError> {
-    let (m_lat, m_lon) = trn_geodesy::metres_per_degree(at.lat_deg);
-    let (dlat, dlon) = (20_000.0 / m_lat, 20_000.0 / m_lon.max(1.0));
-    let bbox =
-        trn_landmark::GeoBox::new(at.lon_deg - dlon, at.lat_deg - dlat, at.lon_deg + dlon, at.lat_deg + dlat);
-    let coarsest = levels.iter().map(|l| l.0).max().unwrap_or(0);
-    let near = source.query(&bbox, coarsest)?;
-    let mut h: Vec<f64> = near.iter().map(|t| t.center.h_m).collect();
-    h.sort_by(f64::total_cmp);
-    Ok((h.get(h.len() / 2).copied().unwrap_or(0.0), near.first().map_or(32.0, |t| t.width_px as f64)))
-}
 
 impl<'a> Navigator<'a> {
     pub fn new(
@@ -166,7 +145,8 @@ impl<'a> Navigator<'a> {
         if levels.is_empty() {
             return Err(crate::source::SourceError("the landmark database has no templates".into()));
         }
-        let (terrain_h_m, template_px) = terrain_near(source, &levels, &init.position)?;
+        let near = crate::view::terrain_near(source, &levels, &init.position)?;
+        let (terrain_h_m, template_px) = (near.height_m, near.template_px.unwrap_or(32.0));
         Ok(Self {
             source,
             camera: camera.model,
@@ -354,11 +334,7 @@ impl<'a> Navigator<'a> {
 
     /// Template level whose GSD is closest (in ratio) to `gsd_m`.
     fn level_for(&self, gsd_m: f64) -> (u8, f64) {
-        *self
-            .levels
-            .iter()
-            .min_by(|a, b| (a.1 / gsd_m).ln().abs().total_cmp(&(b.1 / gsd_m).ln().abs()))
-            .expect("levels")
+        crate::view::level_for(&self.levels, gsd_m).expect("levels")
     }
 
     /// Coarse-to-fine pose from one image; `Err(matches)` when no pose came out.
@@ -447,29 +423,19 @@ impl<'a> Navigator<'a> {
         let scale = (1u32 << level) as f64;
         // Oblique views span many ground resolutions: query the levels around
         // the centre's and keep each template only where its level fits the
-        // local resolution best.
+        // local resolution (`view::level_fits`, shared with the server).
         let (db_level, _) = self.level_for(fp.center_gsd_m * scale);
-        let lo = db_level.saturating_sub(2);
+        let span = crate::view::LEVEL_SPAN;
+        let (lo, hi) = (db_level.saturating_sub(span), db_level.saturating_add(span));
         let mut templates = Vec::new();
-        for l in self.levels.iter().map(|l| l.0).filter(|&l| l >= lo && l <= db_level + 2) {
+        for l in self.levels.iter().map(|l| l.0).filter(|&l| l >= lo && l <= hi) {
             templates.extend(self.query(&fp.bbox, l).map_err(|e| {
                 tracing::warn!("landmark query failed: {e}");
                 0usize
             })?);
         }
-        let pixel_angle = scale / self.camera.fx.min(self.camera.fy);
         templates.retain(|t| {
-            let c = t.center_ecef();
-            let range = pose.position.distance_m(&c);
-            let up = t.center.up_ecef();
-            let cos_inc = ((pose.position.0 - c.0) / range.max(1e-9)).dot(&up).max(0.2);
-            let local_gsd = range * pixel_angle / cos_inc.sqrt();
-            // The best-fitting level, and the next finer one where its
-            // templates still span MIN_FINE_PATCH_PX: more landmarks, whose
-            // independent errors average out the tilt/shift ambiguity.
-            let best = self.level_for(local_gsd).0;
-            best == t.level
-                || (best == t.level + 1 && t.width_px as f64 * t.gsd_m / local_gsd >= MIN_FINE_PATCH_PX)
+            crate::view::level_fits(&self.levels, t, crate::view::local_gsd_m(&self.camera, pose, t) * scale)
         });
         let chosen = self.spread(&templates, pose);
         let img = &pyr.levels[level];

@@ -1,0 +1,150 @@
+//! Landmarks from a `trn serve` landmark server over HTTP.
+//!
+//! The levels come from `GET /v1/info` once; every query is
+//! `GET /v1/templates?bbox=..&level=..` in the compact binary encoding
+//! ([`trn_landmark::wire`], lossless), paged with `offset` while the server says
+//! the list was truncated. The templates, and their order, are exactly those a
+//! [`crate::DbSource`] on the same file returns, so `trn navigate --server`
+//! gives the same poses as `--db`.
+
+use std::time::Duration;
+
+use serde::Deserialize;
+use trn_landmark::{wire, GeoBox, Template};
+use trn_store::LevelInfo;
+
+use crate::source::{LandmarkSource, SourceError};
+
+/// Templates asked for per request (the server's largest page).
+pub const PAGE_SIZE: usize = 10_000;
+/// Largest response body read (bytes); a page of 10 000 templates of 64 x 64 px
+/// with 9 x 9 height grids takes about 45 MB.
+const MAX_BODY_BYTES: u64 = 256 << 20;
+
+/// A landmark server reached over HTTP (plain `http://`).
+pub struct HttpSource {
+    agent: ureq::Agent,
+    base: String,
+    levels: Vec<LevelInfo>,
+}
+
+#[derive(Deserialize)]
+struct InfoJson {
+    levels: Vec<LevelJson>,
+}
+
+#[derive(Deserialize)]
+struct LevelJson {
+    level: u8,
+    gsd_m: f64,
+    count: u64,
+    extent: GeoBox,
+}
+
+#[derive(Deserialize)]
+struct ErrorJson {
+    error: String,
+}
+
+impl HttpSource {
+    /// Connects to the server at `base_url` (e.g. `http://127.0.0.1:8080`) and
+    /// reads its levels.
+    pub fn connect(base_url: &str) -> Result<Self, SourceError> {
+        let base = base_url.trim_end_matches('/').to_owned();
+        if !base.starts_with("http://") {
+            return Err(SourceError(format!("{base_url}: the landmark server URL must start with http://")));
+        }
+        let agent: ureq::Agent = ureq::Agent::config_builder()
+            .timeout_global(Some(Duration::from_secs(60)))
+            .http_status_as_error(false)
+            .build()
+            .into();
+        let mut me = Self { agent, base, levels: Vec::new() };
+        let (body, _) = me.get("/v1/info", "application/json")?;
+        let info: InfoJson = serde_json::from_slice(&body)
+            .map_err(|e| SourceError(format!("{}/v1/info: not the expected JSON: {e}", me.base)))?;
+        me.levels = info
+            .levels
+            .into_iter()
+            .map(|l| LevelInfo { level: l.level, gsd_m: l.gsd_m, count: l.count, extent: l.extent })
+            .collect();
+        Ok(me)
+    }
+
+    pub fn base_url(&self) -> &str {
+        &self.base
+    }
+
+    /// GET `path_and_query`; the body and ETag of a 200, else an error with the
+    /// server's message.
+    fn get(&self, path_and_query: &str, accept: &str) -> Result<(Vec<u8>, Option<String>), SourceError> {
+        let url = format!("{}{path_and_query}", self.base);
+        let mut resp = self
+            .agent
+            .get(&url)
+            .header("Accept", accept)
+            .call()
+            .map_err(|e| SourceError(format!("{url}: {e}")))?;
+        let status = resp.status();
+        let etag = resp.headers().get("etag").and_then(|v| v.to_str().ok()).map(str::to_owned);
+        let body = resp
+            .body_mut()
+            .with_config()
+            .limit(MAX_BODY_BYTES)
+            .read_to_vec()
+            .map_err(|e| SourceError(format!("{url}: reading the response: {e}")))?;
+        if status != 200 {
+            let why = serde_json::from_slice::<ErrorJson>(&body)
+                .map(|e| e.error)
+                .unwrap_or_else(|_| String::from_utf8_lossy(&body).chars().take(200).collect());
+            return Err(SourceError(format!("{url}: HTTP {status}: {why}")));
+        }
+        Ok((body, etag))
+    }
+}
+
+impl LandmarkSource for HttpSource {
+    fn levels(&self) -> Result<Vec<LevelInfo>, SourceError> {
+        Ok(self.levels.clone())
+    }
+
+    fn query(&self, bbox: &GeoBox, level: u8) -> Result<Vec<Template>, SourceError> {
+        // The server refuses coordinates off the globe; clamping them changes no
+        // result (no footprint lies beyond), so the answer is the DbSource's.
+        let b = GeoBox::new(
+            bbox.min_lon_deg.clamp(-180.0, 180.0),
+            bbox.min_lat_deg.clamp(-90.0, 90.0),
+            bbox.max_lon_deg.clamp(-180.0, 180.0),
+            bbox.max_lat_deg.clamp(-90.0, 90.0),
+        );
+        let mut out = Vec::new();
+        let mut first_etag = None;
+        loop {
+            // `{}` prints the shortest decimal that parses back to the same f64.
+            let path = format!(
+                "/v1/templates?bbox={},{},{},{}&level={level}&limit={PAGE_SIZE}&offset={}",
+                b.min_lon_deg,
+                b.min_lat_deg,
+                b.max_lon_deg,
+                b.max_lat_deg,
+                out.len()
+            );
+            let (body, etag) = self.get(&path, wire::MEDIA_TYPE)?;
+            // Pages from two database versions (a reload in between) do not
+            // make one list: start again.
+            if out.is_empty() {
+                first_etag = etag;
+            } else if etag != first_etag {
+                out.clear();
+                first_etag = None;
+                continue;
+            }
+            let page = wire::decode(&body).map_err(|e| SourceError(format!("{}{path}: {e}", self.base)))?;
+            let n = page.templates.len();
+            out.extend(page.templates);
+            if !page.truncated || n == 0 {
+                return Ok(out);
+            }
+        }
+    }
+}

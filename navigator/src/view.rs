@@ -1,0 +1,150 @@
+//! Which landmarks a camera pose can use, without an image: the footprint
+//! ([`crate::footprint`], horizon and angle filter), the database levels
+//! around the one whose GSD fits the image centre, each template kept only
+//! where its level fits the local ground resolution best, and only where it
+//! projects into the image. This is the selection of the per-frame pipeline
+//! (`nav.rs`, before the spread over image cells), shared with the landmark
+//! server's footprint and coverage queries.
+
+use trn_camera::{CameraModel, CameraPose};
+use trn_geodesy::Geodetic;
+use trn_landmark::{GeoBox, Template};
+
+use crate::footprint::{footprint, Footprint, FootprintError, FootprintParams};
+use crate::source::{LandmarkSource, SourceError};
+
+/// Levels queried on either side of the level that fits the image centre.
+pub const LEVEL_SPAN: u8 = 2;
+
+/// Radius around a position within which [`terrain_height_near`] looks (m).
+pub const TERRAIN_RADIUS_M: f64 = 20_000.0;
+
+/// Database level whose GSD is closest (in ratio) to `gsd_m`; `None` without levels.
+pub fn level_for(levels: &[(u8, f64)], gsd_m: f64) -> Option<(u8, f64)> {
+    levels.iter().copied().min_by(|a, b| (a.1 / gsd_m).ln().abs().total_cmp(&(b.1 / gsd_m).ln().abs()))
+}
+
+/// Smallest size (image pixels) of a template one level finer than the local
+/// resolution for it to be used as well.
+pub const MIN_FINE_PATCH_PX: f64 = 14.0;
+
+/// Whether a template seen at `local_gsd_m` (m per image pixel) is used: its
+/// level fits the local resolution best, or it is one level finer and still
+/// spans [`MIN_FINE_PATCH_PX`] (more landmarks, whose independent errors
+/// average out the narrow view's tilt/shift ambiguity).
+pub fn level_fits(levels: &[(u8, f64)], t: &Template, local_gsd_m: f64) -> bool {
+    let Some((best, _)) = level_for(levels, local_gsd_m) else { return false };
+    best == t.level
+        || (best == t.level.saturating_add(1)
+            && t.width_px as f64 * t.gsd_m / local_gsd_m >= MIN_FINE_PATCH_PX)
+}
+
+/// Ground sample distance (m per image pixel) at which the camera sees a
+/// template, stretched by the incidence as in the navigator.
+pub fn local_gsd_m(camera: &CameraModel, pose: &CameraPose, t: &Template) -> f64 {
+    let c = t.center_ecef();
+    let range = pose.position.distance_m(&c);
+    let up = t.center.up_ecef();
+    let cos_inc = ((pose.position.0 - c.0) / range.max(1e-9)).dot(&up).max(0.2);
+    range / camera.fx.min(camera.fy) / cos_inc.sqrt()
+}
+
+/// The terrain near a position, as the navigator takes it for its first footprint.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TerrainNear {
+    /// Median height of the coarsest level's templates within
+    /// [`TERRAIN_RADIUS_M`] (0 when there are none).
+    pub height_m: f64,
+    /// Side of those templates (px), if any.
+    pub template_px: Option<f64>,
+}
+
+/// See [`TerrainNear`].
+pub fn terrain_near(
+    source: &dyn LandmarkSource,
+    levels: &[(u8, f64)],
+    at: &Geodetic,
+) -> Result<TerrainNear, SourceError> {
+    let (m_lat, m_lon) = trn_geodesy::metres_per_degree(at.lat_deg);
+    let (dlat, dlon) = (TERRAIN_RADIUS_M / m_lat, TERRAIN_RADIUS_M / m_lon.max(1.0));
+    let bbox = GeoBox::new(
+        (at.lon_deg - dlon).max(-180.0),
+        (at.lat_deg - dlat).max(-90.0),
+        (at.lon_deg + dlon).min(180.0),
+        (at.lat_deg + dlat).min(90.0),
+    );
+    let Some(coarsest) = levels.iter().map(|l| l.0).max() else {
+        return Ok(TerrainNear { height_m: 0.0, template_px: None });
+    };
+    let near = source.query(&bbox, coarsest)?;
+    let mut h: Vec<f64> = near.iter().map(|t| t.center.h_m).collect();
+    h.sort_by(f64::total_cmp);
+    Ok(TerrainNear {
+        height_m: h.get(h.len() / 2).copied().unwrap_or(0.0),
+        template_px: near.first().map(|t| t.width_px as f64),
+    })
+}
+
+/// The landmarks a pose can use.
+#[derive(Clone, Debug)]
+pub struct View {
+    pub footprint: Footprint,
+    /// The level whose GSD fits the image centre.
+    pub center_level: u8,
+    /// Templates in view, each at the level that fits its local GSD, in the
+    /// source's order per level, levels finest first.
+    pub templates: Vec<Template>,
+}
+
+/// Why a pose sees no landmarks at all.
+#[derive(Debug, thiserror::Error)]
+pub enum ViewError {
+    #[error(transparent)]
+    Footprint(#[from] FootprintError),
+    #[error(transparent)]
+    Source(#[from] SourceError),
+    #[error("the landmark database has no templates")]
+    NoLevels,
+}
+
+/// The templates `pose` can use (see the module documentation).
+pub fn landmarks_in_view(
+    source: &dyn LandmarkSource,
+    levels: &[(u8, f64)],
+    camera: &CameraModel,
+    pose: &CameraPose,
+    params: &FootprintParams,
+) -> Result<View, ViewError> {
+    let fp = footprint(camera, pose, params)?;
+    let (center_level, _) = level_for(levels, fp.center_gsd_m).ok_or(ViewError::NoLevels)?;
+    let lo = center_level.saturating_sub(LEVEL_SPAN);
+    let hi = center_level.saturating_add(LEVEL_SPAN);
+    let (w, h) = (camera.width as f64, camera.height as f64);
+    let mut templates = Vec::new();
+    for l in levels.iter().map(|l| l.0).filter(|&l| l >= lo && l <= hi) {
+        for t in source.query(&fp.bbox, l)? {
+            if !level_fits(levels, &t, local_gsd_m(camera, pose, &t)) {
+                continue;
+            }
+            let Some(p) = pose.project(camera, &t.center_ecef()) else { continue };
+            if p.u >= 0.0 && p.v >= 0.0 && p.u < w && p.v < h {
+                templates.push(t);
+            }
+        }
+    }
+    Ok(View { footprint: fp, center_level, templates })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn level_for_picks_the_closest_ratio() {
+        let levels = [(0, 4.0), (1, 8.0), (2, 16.0)];
+        assert_eq!(level_for(&levels, 5.0), Some((0, 4.0)));
+        assert_eq!(level_for(&levels, 6.0), Some((1, 8.0)));
+        assert_eq!(level_for(&levels, 1000.0), Some((2, 16.0)));
+        assert_eq!(level_for(&[], 5.0), None);
+    }
+}

@@ -1,0 +1,651 @@
+//! Footprint and coverage queries: which landmarks a camera pose can use
+//! (`POST /v1/footprint`), and how many along a planned trajectory
+//! (`POST /v1/coverage`, `trn coverage`), with the navigator's own selection
+//! ([`trn_navigator::view`]: footprint with horizon walking and angle filter,
+//! level fit, projection into the image).
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+use trn_camera::{CameraModel, CameraPose, Distortion};
+use trn_geodesy::{Ecef, Enu, Geodetic, LocalFrame};
+use trn_landmark::{GeoBox, Template};
+use trn_navigator::footprint::FootprintParams;
+use trn_navigator::view::{landmarks_in_view, terrain_near, ViewError};
+use trn_navigator::LandmarkSource;
+use utoipa::ToSchema;
+
+use crate::api::TemplateSummary;
+use crate::error::ApiError;
+
+/// Landmarks in view below this count make a stretch of poor coverage.
+pub const DEFAULT_THRESHOLD: usize = 8;
+/// Most trajectory points one coverage request may have (after densifying).
+pub const MAX_POINTS: usize = 10_000;
+/// Largest image side accepted (px).
+pub const MAX_IMAGE_SIDE: u32 = 65_536;
+/// Templates listed by a footprint answer unless `limit` says otherwise, and at most.
+pub const DEFAULT_FOOTPRINT_LIMIT: usize = 1000;
+pub const MAX_FOOTPRINT_LIMIT: usize = 10_000;
+
+/// A camera: either `hfov_deg` (distortion-free, square pixels, centred
+/// principal point) or the flight format's `camera.json` fields (`fx`, `fy`,
+/// `cx`, `cy`, optional `distortion`; `q_cam_imu` is accepted and ignored).
+#[derive(Clone, Debug, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct CameraIn {
+    /// Image size (px).
+    pub width: u32,
+    pub height: u32,
+    /// Horizontal field of view, edge to edge (deg).
+    pub hfov_deg: Option<f64>,
+    /// Focal lengths and principal point (px; (0, 0) is the top-left pixel's centre).
+    pub fx: Option<f64>,
+    pub fy: Option<f64>,
+    pub cx: Option<f64>,
+    pub cy: Option<f64>,
+    /// Brown-Conrady coefficients `{k1, k2, p1, p2, k3}` as in `camera.json`.
+    #[schema(value_type = Option<Object>)]
+    pub distortion: Option<Distortion>,
+    /// Camera mounting of `camera.json`; ignored here.
+    pub q_cam_imu: Option<[f64; 4]>,
+}
+
+impl CameraIn {
+    pub fn to_model(&self, field: &str) -> Result<CameraModel, ApiError> {
+        let bad = |m: String| ApiError::unprocessable(format!("{field}: {m}"));
+        if self.width == 0 || self.height == 0 || self.width > MAX_IMAGE_SIDE || self.height > MAX_IMAGE_SIDE
+        {
+            return Err(bad(format!(
+                "image size {}x{} px; each side must be 1..={MAX_IMAGE_SIDE}",
+                self.width, self.height
+            )));
+        }
+        let model = match (self.hfov_deg, self.fx, self.fy) {
+            (Some(h), None, None) => {
+                if !(h > 0.0 && h < 180.0) {
+                    return Err(bad(format!("hfov_deg {h} must be in (0, 180) degrees")));
+                }
+                CameraModel::from_fov(self.width, self.height, h)
+            }
+            (None, Some(fx), Some(fy)) => CameraModel {
+                width: self.width,
+                height: self.height,
+                fx,
+                fy,
+                cx: self.cx.unwrap_or(0.5 * (self.width as f64 - 1.0)),
+                cy: self.cy.unwrap_or(0.5 * (self.height as f64 - 1.0)),
+                distortion: self.distortion.unwrap_or_default(),
+            },
+            _ => {
+                return Err(bad(
+                    "give either hfov_deg, or fx and fy (with optional cx, cy, distortion)".into()
+                ))
+            }
+        };
+        model.validate().map_err(|e| bad(e.to_string()))?;
+        Ok(model)
+    }
+}
+
+/// A camera pose: WGS84 position and the attitude `q_ecef_cam` (`[w, x, y, z]`,
+/// rotates camera-frame vectors into ECEF, as in the flight format).
+#[derive(Clone, Copy, Debug, Deserialize, Serialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct PoseIn {
+    pub lat_deg: f64,
+    pub lon_deg: f64,
+    /// Height above the WGS84 ellipsoid (m).
+    pub h_m: f64,
+    pub q_ecef_cam: [f64; 4],
+}
+
+/// A trajectory point without attitude (the attitude rule gives it).
+#[derive(Clone, Copy, Debug, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct WaypointIn {
+    pub lat_deg: f64,
+    pub lon_deg: f64,
+    /// Height above the WGS84 ellipsoid (m).
+    pub h_m: f64,
+}
+
+/// How the camera points at a waypoint: tilted `tilt_deg` from nadir toward
+/// the direction of travel turned clockwise by `azimuth_deg` (0: ahead, 90:
+/// right); image up points that way (nadir: the direction of travel).
+#[derive(Clone, Copy, Debug, Default, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct AttitudeRule {
+    #[serde(default)]
+    pub tilt_deg: f64,
+    #[serde(default)]
+    pub azimuth_deg: f64,
+}
+
+/// Largest height accepted for a pose (m): far beyond any camera that sees landmarks.
+const MAX_HEIGHT_M: f64 = 1.0e8;
+
+fn check_position(field: &str, lat: f64, lon: f64, h: f64) -> Result<Geodetic, ApiError> {
+    let bad = |m: String| Err(ApiError::unprocessable(format!("{field}: {m}")));
+    if !(lat.abs() <= 90.0) {
+        return bad(format!("lat_deg {lat} is not in [-90, 90]"));
+    }
+    if !(lon.abs() <= 180.0) {
+        return bad(format!("lon_deg {lon} is not in [-180, 180]"));
+    }
+    if !(h.abs() <= MAX_HEIGHT_M) {
+        return bad(format!("h_m {h} is not a height in [-1e8, 1e8] m"));
+    }
+    Ok(Geodetic::new(lat, lon, h))
+}
+
+impl PoseIn {
+    pub fn to_pose(&self, field: &str) -> Result<(Geodetic, CameraPose), ApiError> {
+        let g = check_position(field, self.lat_deg, self.lon_deg, self.h_m)?;
+        let q = self.q_ecef_cam;
+        let norm = q.iter().map(|x| x * x).sum::<f64>().sqrt();
+        if !(norm > 1e-6 && norm.is_finite()) {
+            return Err(ApiError::unprocessable(format!(
+                "{field}: q_ecef_cam {q:?} is not a rotation (a non-zero [w, x, y, z])"
+            )));
+        }
+        Ok((g, CameraPose::new(g.to_ecef(), trn_camera::quat_from_wxyz(q))))
+    }
+}
+
+fn check_alpha(alpha: Option<f64>) -> Result<f64, ApiError> {
+    let a = alpha.unwrap_or(75.0);
+    if !(a > 0.0 && a < 90.0) {
+        return Err(ApiError::unprocessable(format!("alpha_max_deg {a} must be in (0, 90) degrees")));
+    }
+    Ok(a)
+}
+
+fn check_terrain(h: Option<f64>) -> Result<Option<f64>, ApiError> {
+    match h {
+        Some(h) if !(h.abs() <= 20_000.0) => {
+            Err(ApiError::unprocessable(format!("terrain_h_m {h} is not a terrain height in [-2e4, 2e4] m")))
+        }
+        _ => Ok(h),
+    }
+}
+
+/// `POST /v1/footprint` body.
+#[derive(Clone, Debug, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct FootprintRequest {
+    pub camera: CameraIn,
+    pub pose: PoseIn,
+    /// Largest angle between a line of sight and the surface normal (deg, default 75).
+    pub alpha_max_deg: Option<f64>,
+    /// Height of the ellipsoid the image corners are projected on (m); default:
+    /// the median template height within 20 km, as the navigator starts.
+    pub terrain_h_m: Option<f64>,
+    /// Most templates listed (default 1000, at most 10000); `count` has them all.
+    pub limit: Option<usize>,
+}
+
+/// A point on the ground (deg).
+#[derive(Clone, Copy, Debug, Serialize, ToSchema)]
+pub struct LatLon {
+    pub lat_deg: f64,
+    pub lon_deg: f64,
+}
+
+/// `POST /v1/footprint` answer.
+#[derive(Clone, Debug, Serialize, ToSchema)]
+pub struct FootprintResponse {
+    /// Box around the walked corners and edge midpoints (deg).
+    #[schema(value_type = Object)]
+    pub bbox: GeoBox,
+    /// Image corners after horizon walking and the angle filter (TL, TR, BR, BL).
+    pub corners: Vec<LatLon>,
+    pub horizon_in_view: bool,
+    pub angle_limited: bool,
+    /// Ground sample distance at the image centre (m/px) and the level that fits it.
+    pub center_gsd_m: f64,
+    pub center_level: u8,
+    pub terrain_h_m: f64,
+    /// Usable landmarks in view (each at the level that fits its local GSD, inside the image).
+    pub count: usize,
+    pub templates: Vec<TemplateSummary>,
+    pub truncated: bool,
+}
+
+fn view_error(field: &str, e: ViewError) -> ApiError {
+    match e {
+        ViewError::Source(e) => ApiError::internal(e.0),
+        e => ApiError::unprocessable(format!("{field}: {e}")),
+    }
+}
+
+fn terrain_for(
+    source: &dyn LandmarkSource,
+    levels: &[(u8, f64)],
+    given: Option<f64>,
+    at: &Geodetic,
+) -> Result<f64, ApiError> {
+    match given {
+        Some(h) => Ok(h),
+        None => terrain_near(source, levels, at).map(|t| t.height_m).map_err(|e| ApiError::internal(e.0)),
+    }
+}
+
+/// Checks a footprint request before it reaches the database.
+pub fn check_footprint(
+    req: &FootprintRequest,
+) -> Result<(CameraModel, CameraPose, Geodetic, f64, usize), ApiError> {
+    let camera = req.camera.to_model("camera")?;
+    let (g, pose) = req.pose.to_pose("pose")?;
+    let alpha = check_alpha(req.alpha_max_deg)?;
+    check_terrain(req.terrain_h_m)?;
+    let limit = req.limit.unwrap_or(DEFAULT_FOOTPRINT_LIMIT);
+    if !(1..=MAX_FOOTPRINT_LIMIT).contains(&limit) {
+        return Err(ApiError::unprocessable(format!("limit {limit} must be in 1..={MAX_FOOTPRINT_LIMIT}")));
+    }
+    Ok((camera, pose, g, alpha, limit))
+}
+
+/// The landmarks one pose can use.
+pub fn footprint_query(
+    source: &dyn LandmarkSource,
+    levels: &[(u8, f64)],
+    req: &FootprintRequest,
+) -> Result<FootprintResponse, ApiError> {
+    let (camera, pose, g, alpha, limit) = check_footprint(req)?;
+    let terrain_h_m = terrain_for(source, levels, req.terrain_h_m, &g)?;
+    let params = FootprintParams { alpha_max_deg: alpha, terrain_h_m, ..Default::default() };
+    let view =
+        landmarks_in_view(source, levels, &camera, &pose, &params).map_err(|e| view_error("pose", e))?;
+    let fp = &view.footprint;
+    let count = view.templates.len();
+    Ok(FootprintResponse {
+        bbox: fp.bbox,
+        corners: fp.corners.iter().map(|c| LatLon { lat_deg: c.lat_deg, lon_deg: c.lon_deg }).collect(),
+        horizon_in_view: fp.horizon_in_view,
+        angle_limited: fp.angle_limited,
+        center_gsd_m: fp.center_gsd_m,
+        center_level: view.center_level,
+        terrain_h_m,
+        count,
+        templates: view.templates.iter().take(limit).map(TemplateSummary::from).collect(),
+        truncated: count > limit,
+    })
+}
+
+/// `POST /v1/coverage` body (and `trn coverage --plan`): a camera and either
+/// `poses`, or `waypoints` with an `attitude` rule (and `step_m` to add points
+/// between them).
+#[derive(Clone, Debug, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct CoverageRequest {
+    pub camera: CameraIn,
+    pub poses: Option<Vec<PoseIn>>,
+    pub waypoints: Option<Vec<WaypointIn>>,
+    pub attitude: Option<AttitudeRule>,
+    /// With waypoints: a point at least every `step_m` metres along the way.
+    pub step_m: Option<f64>,
+    /// Fewer usable landmarks than this make a stretch of poor coverage (default 8).
+    pub threshold: Option<usize>,
+    pub alpha_max_deg: Option<f64>,
+    /// Terrain height for every point (m); default: per point, as `/v1/footprint`.
+    pub terrain_h_m: Option<f64>,
+}
+
+/// One trajectory point's coverage.
+#[derive(Clone, Debug, Serialize, ToSchema)]
+pub struct CoveragePoint {
+    pub index: usize,
+    pub lat_deg: f64,
+    pub lon_deg: f64,
+    pub h_m: f64,
+    /// Usable landmarks in view.
+    pub landmarks: usize,
+    /// The level fitting the image centre (null when no ground is in view).
+    pub center_level: Option<u8>,
+    /// The footprint's box (null when no ground is in view).
+    #[schema(value_type = Option<Object>)]
+    pub bbox: Option<GeoBox>,
+    /// Why no landmark can be in view (sky, below the terrain), if so.
+    pub note: Option<String>,
+}
+
+/// Consecutive points below the threshold.
+#[derive(Clone, Debug, Serialize, ToSchema)]
+pub struct Stretch {
+    pub start_index: usize,
+    pub end_index: usize,
+    pub min_landmarks: usize,
+    /// Along the trajectory, first to last point of the stretch (m).
+    pub length_m: f64,
+}
+
+/// `POST /v1/coverage` answer.
+#[derive(Clone, Debug, Serialize, ToSchema)]
+pub struct CoverageReport {
+    pub threshold: usize,
+    pub points: Vec<CoveragePoint>,
+    pub stretches: Vec<Stretch>,
+    pub min_landmarks: usize,
+    /// Share of the points below the threshold.
+    pub share_below: f64,
+}
+
+/// The trajectory's poses, checked (waypoints turned into poses by the rule).
+pub fn plan_poses(req: &CoverageRequest) -> Result<(CameraModel, Vec<(Geodetic, CameraPose)>), ApiError> {
+    let camera = req.camera.to_model("camera")?;
+    check_alpha(req.alpha_max_deg)?;
+    check_terrain(req.terrain_h_m)?;
+    if let Some(t) = req.threshold {
+        if t > 1_000_000 {
+            return Err(ApiError::unprocessable(format!("threshold {t} must be at most 1000000")));
+        }
+    }
+    let poses = match (&req.poses, &req.waypoints) {
+        (Some(p), None) => {
+            if req.attitude.is_some() || req.step_m.is_some() {
+                return Err(ApiError::unprocessable("attitude and step_m go with waypoints, not poses"));
+            }
+            if p.len() > MAX_POINTS {
+                return Err(too_many(p.len()));
+            }
+            p.iter()
+                .enumerate()
+                .map(|(i, p)| p.to_pose(&format!("poses[{i}]")))
+                .collect::<Result<Vec<_>, _>>()?
+        }
+        (None, Some(w)) => waypoint_poses(w, req.attitude.unwrap_or_default(), req.step_m)?,
+        _ => return Err(ApiError::unprocessable("give either poses or waypoints (exactly one of them)")),
+    };
+    if poses.is_empty() {
+        return Err(ApiError::unprocessable("the trajectory has no points"));
+    }
+    Ok((camera, poses))
+}
+
+fn too_many(n: usize) -> ApiError {
+    ApiError::new(
+        axum::http::StatusCode::PAYLOAD_TOO_LARGE,
+        format!("{n} trajectory points; at most {MAX_POINTS} per request (split the trajectory)"),
+    )
+}
+
+fn waypoint_poses(
+    w: &[WaypointIn],
+    rule: AttitudeRule,
+    step_m: Option<f64>,
+) -> Result<Vec<(Geodetic, CameraPose)>, ApiError> {
+    if !(rule.tilt_deg >= 0.0 && rule.tilt_deg < 90.0) {
+        return Err(ApiError::unprocessable(format!(
+            "attitude.tilt_deg {} must be in [0, 90)",
+            rule.tilt_deg
+        )));
+    }
+    if !rule.azimuth_deg.is_finite() {
+        return Err(ApiError::unprocessable("attitude.azimuth_deg must be a number of degrees"));
+    }
+    if let Some(s) = step_m {
+        if !(s >= 1.0 && s.is_finite()) {
+            return Err(ApiError::unprocessable(format!("step_m {s} must be at least 1 m")));
+        }
+    }
+    if w.len() > MAX_POINTS {
+        return Err(too_many(w.len()));
+    }
+    let pts: Vec<Geodetic> = w
+        .iter()
+        .enumerate()
+        .map(|(i, p)| check_position(&format!("waypoints[{i}]"), p.lat_deg, p.lon_deg, p.h_m))
+        .collect::<Result<_, _>>()?;
+    // Densify: linear in latitude, longitude (the short way round) and height.
+    let mut dense = Vec::new();
+    for (i, p) in pts.iter().enumerate() {
+        dense.push(*p);
+        let (Some(s), Some(q)) = (step_m, pts.get(i + 1)) else { continue };
+        let n = (p.to_ecef().distance_m(&q.to_ecef()) / s).ceil();
+        if n as usize + dense.len() > MAX_POINTS {
+            return Err(too_many(n as usize + dense.len()));
+        }
+        let dlon = (q.lon_deg - p.lon_deg + 540.0).rem_euclid(360.0) - 180.0;
+        for k in 1..n as usize {
+            let f = k as f64 / n;
+            let lon = (p.lon_deg + f * dlon + 540.0).rem_euclid(360.0) - 180.0;
+            dense.push(Geodetic::new(
+                p.lat_deg + f * (q.lat_deg - p.lat_deg),
+                lon,
+                p.h_m + f * (q.h_m - p.h_m),
+            ));
+        }
+    }
+    let mut out = Vec::with_capacity(dense.len());
+    let mut heading = Enu::new(0.0, 1.0, 0.0);
+    for i in 0..dense.len() {
+        let frame = LocalFrame::at(dense[i]);
+        // Direction of travel: toward the next point (the last keeps the previous).
+        if let Some(next) = dense.get(i + 1) {
+            let d = frame.to_enu(&next.to_ecef()).0;
+            let horiz = nalgebra::Vector3::new(d.x, d.y, 0.0);
+            if horiz.norm() > 1e-6 {
+                heading = Enu(horiz.normalize());
+            }
+        }
+        let az = rule.azimuth_deg.to_radians();
+        let (s, c) = az.sin_cos();
+        // Clockwise from the heading, seen from above (east = north turned right).
+        let dir =
+            nalgebra::Vector3::new(c * heading.0.x + s * heading.0.y, c * heading.0.y - s * heading.0.x, 0.0);
+        let tilt = rule.tilt_deg.to_radians();
+        let look = dir * tilt.sin() - nalgebra::Vector3::z() * tilt.cos();
+        let pos = dense[i].to_ecef();
+        let to_ecef = |v: nalgebra::Vector3<f64>| frame.vector_to_ecef(&v);
+        let target = Ecef(pos.0 + to_ecef(look) * 1000.0);
+        out.push((dense[i], CameraPose::look_at(pos, target, to_ecef(dir))));
+    }
+    Ok(out)
+}
+
+/// Usable landmarks at every point of the trajectory, and the stretches below the threshold.
+pub fn coverage_query(
+    source: &dyn LandmarkSource,
+    levels: &[(u8, f64)],
+    req: &CoverageRequest,
+) -> Result<CoverageReport, ApiError> {
+    let (camera, poses) = plan_poses(req)?;
+    let alpha = check_alpha(req.alpha_max_deg)?;
+    let threshold = req.threshold.unwrap_or(DEFAULT_THRESHOLD);
+    let mut points = Vec::with_capacity(poses.len());
+    for (i, (g, pose)) in poses.iter().enumerate() {
+        let terrain_h_m = terrain_for(source, levels, req.terrain_h_m, g)?;
+        let params = FootprintParams { alpha_max_deg: alpha, terrain_h_m, ..Default::default() };
+        let (landmarks, center_level, bbox, note) =
+            match landmarks_in_view(source, levels, &camera, pose, &params) {
+                Ok(v) => (v.templates.len(), Some(v.center_level), Some(v.footprint.bbox), None),
+                Err(ViewError::Source(e)) => return Err(ApiError::internal(e.0)),
+                Err(e) => (0, None, None, Some(e.to_string())),
+            };
+        points.push(CoveragePoint {
+            index: i,
+            lat_deg: g.lat_deg,
+            lon_deg: g.lon_deg,
+            h_m: g.h_m,
+            landmarks,
+            center_level,
+            bbox,
+            note,
+        });
+    }
+    let mut stretches = Vec::new();
+    let mut i = 0;
+    while i < points.len() {
+        if points[i].landmarks >= threshold {
+            i += 1;
+            continue;
+        }
+        let start = i;
+        let mut length_m = 0.0;
+        while i + 1 < points.len() && points[i + 1].landmarks < threshold {
+            length_m += poses[i].1.position.distance_m(&poses[i + 1].1.position);
+            i += 1;
+        }
+        let min_landmarks = points[start..=i].iter().map(|p| p.landmarks).min().unwrap_or(0);
+        stretches.push(Stretch { start_index: start, end_index: i, min_landmarks, length_m });
+        i += 1;
+    }
+    let below = points.iter().filter(|p| p.landmarks < threshold).count();
+    Ok(CoverageReport {
+        threshold,
+        min_landmarks: points.iter().map(|p| p.landmarks).min().unwrap_or(0),
+        share_below: below as f64 / points.len() as f64,
+        points,
+        stretches,
+    })
+}
+
+/// The report as a GeoJSON FeatureCollection (RFC 7946, lon/lat/h): the whole
+/// trajectory as a LineString, each stretch below the threshold as a
+/// LineString, each point as a Point with its landmark count.
+pub fn to_geojson(r: &CoverageReport) -> serde_json::Value {
+    use serde_json::json;
+    let coord = |p: &CoveragePoint| json!([p.lon_deg, p.lat_deg, p.h_m]);
+    let mut features = vec![json!({
+        "type": "Feature",
+        "geometry": {"type": "LineString", "coordinates": r.points.iter().map(coord).collect::<Vec<_>>()},
+        "properties": {"kind": "trajectory", "threshold": r.threshold, "min_landmarks": r.min_landmarks},
+    })];
+    for s in &r.stretches {
+        let pts: Vec<_> = r.points[s.start_index..=s.end_index].iter().map(coord).collect();
+        let geometry = if pts.len() == 1 {
+            json!({"type": "Point", "coordinates": pts[0]})
+        } else {
+            json!({"type": "LineString", "coordinates": pts})
+        };
+        features.push(json!({
+            "type": "Feature",
+            "geometry": geometry,
+            "properties": {"kind": "below_threshold", "start_index": s.start_index, "end_index": s.end_index,
+                           "min_landmarks": s.min_landmarks, "length_m": s.length_m},
+        }));
+    }
+    for p in &r.points {
+        features.push(json!({
+            "type": "Feature",
+            "geometry": {"type": "Point", "coordinates": coord(p)},
+            "properties": {"kind": "point", "index": p.index, "landmarks": p.landmarks,
+                           "below_threshold": p.landmarks < r.threshold},
+        }));
+    }
+    json!({"type": "FeatureCollection", "features": features})
+}
+
+/// Draws the trajectory over the landmark footprints (PNG, north up, longitude
+/// scaled by cos(latitude)): footprints in grey (darker for finer levels),
+/// points green at or above the threshold and red below, joined by a line.
+pub fn render_map(
+    templates: &[Template],
+    report: &CoverageReport,
+    path: &Path,
+    width_px: u32,
+) -> Result<(), String> {
+    let mut boxes: Vec<GeoBox> = report.points.iter().filter_map(|p| p.bbox).collect();
+    boxes.extend(report.points.iter().map(|p| GeoBox::new(p.lon_deg, p.lat_deg, p.lon_deg, p.lat_deg)));
+    let area = GeoBox::around(
+        boxes
+            .iter()
+            .filter(|b| !b.crosses_antimeridian())
+            .flat_map(|b| [(b.min_lon_deg, b.min_lat_deg), (b.max_lon_deg, b.max_lat_deg)]),
+    )
+    .ok_or("no point to draw")?;
+    let (dlon, dlat) =
+        ((area.max_lon_deg - area.min_lon_deg).max(1e-6), (area.max_lat_deg - area.min_lat_deg).max(1e-6));
+    let margin = 0.05;
+    let (lon0, lat1) = (area.min_lon_deg - margin * dlon, area.max_lat_deg + margin * dlat);
+    let (span_lon, span_lat) = (dlon * (1.0 + 2.0 * margin), dlat * (1.0 + 2.0 * margin));
+    let coslat = (0.5 * (area.min_lat_deg + area.max_lat_deg)).to_radians().cos().max(0.01);
+    let w = width_px.max(16);
+    let h = ((w as f64 * span_lat / (span_lon * coslat)).round() as u32).clamp(16, 8 * w);
+    let mut img = image::RgbImage::from_pixel(w, h, image::Rgb([255, 255, 255]));
+    let to_px = |lon: f64, lat: f64| ((lon - lon0) / span_lon * w as f64, (lat1 - lat) / span_lat * h as f64);
+    let max_level = templates.iter().map(|t| t.level).max().unwrap_or(0).max(1) as f64;
+    let mut sorted: Vec<&Template> = templates.iter().collect();
+    sorted.sort_by_key(|t| std::cmp::Reverse(t.level));
+    for t in sorted {
+        let f = &t.footprint;
+        if f.crosses_antimeridian() {
+            continue;
+        }
+        let (x0, y0) = to_px(f.min_lon_deg, f.max_lat_deg);
+        let (x1, y1) = to_px(f.max_lon_deg, f.min_lat_deg);
+        let grey = (150.0 + 80.0 * t.level as f64 / max_level) as u8;
+        for y in (y0.floor().max(0.0) as u32)..(y1.ceil().min(h as f64) as u32) {
+            for x in (x0.floor().max(0.0) as u32)..(x1.ceil().min(w as f64) as u32) {
+                let p = img.get_pixel_mut(x, y);
+                p.0 = p.0.map(|c| c.min(grey));
+            }
+        }
+    }
+    let colour = |p: &CoveragePoint| {
+        if p.landmarks >= report.threshold {
+            image::Rgb([0, 160, 0])
+        } else {
+            image::Rgb([220, 0, 0])
+        }
+    };
+    let put = |img: &mut image::RgbImage, x: f64, y: f64, c: image::Rgb<u8>, r: i64| {
+        for dy in -r..=r {
+            for dx in -r..=r {
+                let (px, py) = (x.round() as i64 + dx, y.round() as i64 + dy);
+                if px >= 0 && py >= 0 && (px as u32) < w && (py as u32) < h {
+                    img.put_pixel(px as u32, py as u32, c);
+                }
+            }
+        }
+    };
+    for pair in report.points.windows(2) {
+        let (a, b) = (to_px(pair[0].lon_deg, pair[0].lat_deg), to_px(pair[1].lon_deg, pair[1].lat_deg));
+        let n = ((b.0 - a.0).abs().max((b.1 - a.1).abs()).ceil() as usize).clamp(1, 4 * (w + h) as usize);
+        for k in 0..=n {
+            let f = k as f64 / n as f64;
+            put(&mut img, a.0 + f * (b.0 - a.0), a.1 + f * (b.1 - a.1), colour(&pair[1]), 0);
+        }
+    }
+    for p in &report.points {
+        let (x, y) = to_px(p.lon_deg, p.lat_deg);
+        put(&mut img, x, y, colour(p), 2);
+    }
+    img.save(path).map_err(|e| format!("{}: {e}", path.display()))
+}
+
+/// `trn coverage`: the report for the plan in `plan` (a [`CoverageRequest`] as
+/// JSON) against the database at `db`, optionally written as GeoJSON and drawn as a PNG map.
+pub fn run_cli(
+    db: &Path,
+    plan: &Path,
+    geojson: Option<&Path>,
+    png: Option<(&Path, u32)>,
+) -> Result<CoverageReport, crate::ServerError> {
+    use crate::ServerError;
+    let file_err = |path: &Path, reason: String| ServerError::File { path: path.into(), reason };
+    let text = std::fs::read_to_string(plan).map_err(|e| file_err(plan, e.to_string()))?;
+    let req: CoverageRequest =
+        serde_json::from_str(&text).map_err(|e| file_err(plan, format!("not a coverage plan: {e}")))?;
+    let conn = trn_store::LandmarkDb::open(db)?;
+    let levels: Vec<(u8, f64)> = conn.levels()?.iter().map(|l| (l.level, l.gsd_m)).collect();
+    let source = crate::db::ConnSource { db: &conn };
+    let report = coverage_query(&source, &levels, &req).map_err(|e| file_err(plan, e.message))?;
+    if let Some(path) = geojson {
+        let text =
+            serde_json::to_string_pretty(&to_geojson(&report)).map_err(|e| file_err(path, e.to_string()))?;
+        std::fs::write(path, text).map_err(|e| file_err(path, e.to_string()))?;
+    }
+    if let Some((path, width)) = png {
+        let boxes: Vec<GeoBox> = report.points.iter().filter_map(|p| p.bbox).collect();
+        let mut templates = Vec::new();
+        if let Some(area) = GeoBox::around(
+            boxes.iter().flat_map(|b| [(b.min_lon_deg, b.min_lat_deg), (b.max_lon_deg, b.max_lat_deg)]),
+        ) {
+            templates = conn.query_bbox(&trn_store::BboxQuery::new(area))?;
+        }
+        render_map(&templates, &report, path, width).map_err(|e| file_err(path, e))?;
+    }
+    Ok(report)
+}

@@ -1,0 +1,426 @@
+//! End to end: the real `trn serve` under 32 concurrent clients, bad input, a
+//! database swapped in by rename + SIGHUP while clients run, graceful
+//! shutdown; `trn navigate --server` against `--db`; `trn coverage`.
+
+mod common;
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Stdio};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use common::{run, simulate, stderr, synth, trn};
+use trn_geodesy::{metres_per_degree, Geodetic};
+use trn_landmark::{wire, GeoBox, HeightGrid, Template, TemplateQuality, TerrainPatch};
+use trn_store::{BboxQuery, DbWriter, LandmarkDb};
+
+/// A running `trn serve`, killed when dropped.
+struct Server {
+    child: Child,
+    url: String,
+    log: PathBuf,
+}
+
+impl Server {
+    fn start(db: &Path, log: PathBuf, extra: &[&str]) -> Server {
+        let mut child = trn()
+            .args(["serve", "--db", db.to_str().unwrap(), "--listen", "127.0.0.1:0"])
+            .args(extra)
+            .stdout(Stdio::piped())
+            .stderr(std::fs::File::create(&log).unwrap())
+            .spawn()
+            .unwrap();
+        let mut line = String::new();
+        BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+        let url = line.trim().strip_prefix("listening on ").map(str::to_owned).unwrap_or_else(|| {
+            let _ = child.kill();
+            panic!(
+                "no address on stdout ({line:?}); log: {}",
+                std::fs::read_to_string(&log).unwrap_or_default()
+            )
+        });
+        Server { child, url, log }
+    }
+
+    fn signal(&self, sig: i32) {
+        // SAFETY: kill(2) on our own child's pid.
+        assert_eq!(unsafe { libc::kill(self.child.id() as i32, sig) }, 0);
+    }
+
+    fn log(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn agent() -> ureq::Agent {
+    ureq::Agent::config_builder()
+        .http_status_as_error(false)
+        .timeout_global(Some(Duration::from_secs(30)))
+        .build()
+        .into()
+}
+
+/// (status, content type, body) of a GET.
+fn get(agent: &ureq::Agent, url: &str, accept: &str) -> (u16, String, Vec<u8>) {
+    let mut r = agent.get(url).header("Accept", accept).call().unwrap_or_else(|e| panic!("{url}: {e}"));
+    let ct = r.headers().get("content-type").and_then(|v| v.to_str().ok()).unwrap_or("").to_owned();
+    let body = r.body_mut().with_config().limit(1 << 30).read_to_vec().unwrap();
+    (r.status().as_u16(), ct, body)
+}
+
+fn post(agent: &ureq::Agent, url: &str, body: &str) -> (u16, Vec<u8>) {
+    let mut r = agent
+        .post(url)
+        .header("Content-Type", "application/json")
+        .send(body.as_bytes())
+        .unwrap_or_else(|e| panic!("{url}: {e}"));
+    (r.status().as_u16(), r.body_mut().with_config().limit(1 << 30).read_to_vec().unwrap())
+}
+
+/// `n` templates at two levels around (40 N, 105.5 W), 0.2 deg across.
+fn write_db(path: &Path, n: usize, seed: u64) {
+    let mut s = seed;
+    let mut next = || {
+        s = s.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
+        (s >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let mut ts: Vec<Template> = (0..n)
+        .map(|i| {
+            let level = (i % 2) as u8;
+            let gsd_m = 8.0 * f64::from(1u32 << level);
+            let (lat, lon) = (40.0 + 0.2 * next() - 0.1, -105.5 + 0.2 * next() - 0.1);
+            let (m_lat, m_lon) = metres_per_degree(lat);
+            let (hl, hb) = (16.0 * gsd_m / 2.0 / m_lon, 16.0 * gsd_m / 2.0 / m_lat);
+            Template {
+                id: 0,
+                level,
+                gsd_m,
+                width_px: 16,
+                height_px: 16,
+                center: Geodetic::new(lat, lon, 1500.0),
+                footprint: GeoBox::new(lon - hl, lat - hb, lon + hl, lat + hb),
+                terrain: TerrainPatch {
+                    plane_normal_enu: [0.0, 0.0, 1.0],
+                    plane_residual_rms_m: 0.1,
+                    height_grid: HeightGrid { n: 3, spacing_m: 8.0 * gsd_m, heights_m: vec![0.0; 9] },
+                },
+                quality: TemplateQuality {
+                    shi_tomasi: (next() * 100.0) as f32,
+                    contrast_std: 20.0,
+                    second_peak_ncc: (next() * 0.9) as f32,
+                },
+                source: 0,
+                pixels: (0..256).map(|k| (k * 13 + i) as u8).collect(),
+            }
+        })
+        .collect();
+    let mut w = DbWriter::create(path).unwrap();
+    w.set_metadata("test", &serde_json::json!({"seed": seed})).unwrap();
+    w.insert_batch(&mut ts).unwrap();
+    w.finish().unwrap();
+}
+
+fn info(agent: &ureq::Agent, url: &str) -> serde_json::Value {
+    let (s, _, b) = get(agent, &format!("{url}/v1/info"), "application/json");
+    assert_eq!(s, 200);
+    serde_json::from_slice(&b).unwrap()
+}
+
+#[test]
+fn thirty_two_clients_bad_input_reload_and_shutdown() {
+    let dir = tempfile::tempdir().unwrap();
+    let db_path = dir.path().join("map.gpkg");
+    write_db(&db_path, 3000, 1);
+    let server = Server::start(&db_path, dir.path().join("serve.log"), &["--connections", "4"]);
+    let url = server.url.clone();
+
+    // Expected answers from the store itself.
+    let db = LandmarkDb::open(&db_path).unwrap();
+    let boxes: Vec<(GeoBox, u8)> = (0..16)
+        .map(|i| {
+            let f = i as f64 / 16.0;
+            (
+                GeoBox::new(-105.6 + 0.15 * f, 39.92 + 0.1 * f, -105.56 + 0.15 * f, 39.96 + 0.1 * f),
+                (i % 2) as u8,
+            )
+        })
+        .collect();
+    let expected: Vec<Vec<i64>> = boxes
+        .iter()
+        .map(|(b, l)| db.query_bbox_ids(&BboxQuery::new(*b).with_levels(*l..=*l)).unwrap())
+        .collect();
+    assert!(expected.iter().all(|e| !e.is_empty() && e.len() < 1000));
+    let expected = Arc::new(expected);
+
+    // 32 clients at once, each with its own connection, binary and JSON answers.
+    let start = Instant::now();
+    let threads: Vec<_> = (0..32)
+        .map(|c| {
+            let (url, boxes, expected) = (url.clone(), boxes.clone(), expected.clone());
+            std::thread::spawn(move || {
+                let agent = agent();
+                for k in 0..40 {
+                    let i = (c * 7 + k) % boxes.len();
+                    let (b, l) = boxes[i];
+                    let q = format!(
+                        "{url}/v1/templates?bbox={},{},{},{}&level={l}",
+                        b.min_lon_deg, b.min_lat_deg, b.max_lon_deg, b.max_lat_deg
+                    );
+                    if k % 2 == 0 {
+                        let (s, ct, body) = get(&agent, &q, wire::MEDIA_TYPE);
+                        assert_eq!((s, ct.as_str()), (200, wire::MEDIA_TYPE));
+                        let ids: Vec<i64> =
+                            wire::decode(&body).unwrap().templates.iter().map(|t| t.id).collect();
+                        assert_eq!(ids, expected[i]);
+                    } else {
+                        let (s, _, body) = get(&agent, &q, "application/json");
+                        assert_eq!(s, 200);
+                        let j: serde_json::Value = serde_json::from_slice(&body).unwrap();
+                        let ids: Vec<i64> = j["templates"]
+                            .as_array()
+                            .unwrap()
+                            .iter()
+                            .map(|t| t["id"].as_i64().unwrap())
+                            .collect();
+                        assert_eq!(ids, expected[i]);
+                    }
+                }
+            })
+        })
+        .collect();
+    for t in threads {
+        t.join().expect("a client failed");
+    }
+    println!("32 clients x 40 queries in {:.2} s", start.elapsed().as_secs_f64());
+
+    // Bad input: named 4xx, and the server keeps serving.
+    let a = agent();
+    for (q, word) in [
+        ("/v1/templates?bbox=0,50,1,40", "reversed"),
+        ("/v1/templates?bbox=NaN,0,1,1", "min_lon"),
+        ("/v1/templates?bbox=0,0,1,1e999", "max_lat"),
+        ("/v1/templates/xyz", "id"),
+    ] {
+        let (s, ct, body) = get(&a, &format!("{url}{q}"), "application/json");
+        assert_eq!((s, ct.as_str()), (400, "application/json"), "{q}");
+        let e: serde_json::Value = serde_json::from_slice(&body).unwrap();
+        assert!(e["error"].as_str().unwrap().contains(word), "{q}: {e}");
+    }
+    let (s, body) = post(&a, &format!("{url}/v1/footprint"), "{not json");
+    assert_eq!(s, 400, "{}", String::from_utf8_lossy(&body));
+    let huge = format!("{{\"camera\": {{}}, \"poses\": [{}]}}", "0,".repeat(2 << 20));
+    let (s, body) = post(&a, &format!("{url}/v1/coverage"), &huge);
+    assert_eq!(s, 413, "{}", String::from_utf8_lossy(&body));
+    assert!(serde_json::from_slice::<serde_json::Value>(&body).unwrap()["error"].is_string());
+    let (s, _, _) = get(&a, &format!("{url}/health"), "application/json");
+    assert_eq!(s, 200);
+
+    // A new version of the database, renamed over the old path, SIGHUP: clients
+    // running meanwhile see no error, and /v1/info changes.
+    let before = info(&a, &url);
+    assert_eq!(before["template_count"], 3000);
+    let stop = Arc::new(AtomicBool::new(false));
+    let done = Arc::new(AtomicUsize::new(0));
+    let counts = Arc::new(std::sync::Mutex::new(std::collections::BTreeSet::new()));
+    let loops: Vec<_> = (0..4)
+        .map(|_| {
+            let (url, stop, done, counts) = (url.clone(), stop.clone(), done.clone(), counts.clone());
+            std::thread::spawn(move || {
+                let agent = agent();
+                while !stop.load(Ordering::Relaxed) {
+                    let (s, _, body) = get(
+                        &agent,
+                        &format!("{url}/v1/templates?bbox=-106,39,-105,41&limit=10000"),
+                        wire::MEDIA_TYPE,
+                    );
+                    assert_eq!(s, 200, "{}", String::from_utf8_lossy(&body));
+                    let n = wire::decode(&body).unwrap().templates.len();
+                    counts.lock().unwrap().insert(n);
+                    done.fetch_add(1, Ordering::Relaxed);
+                }
+            })
+        })
+        .collect();
+    std::thread::sleep(Duration::from_millis(300));
+    let tmp = dir.path().join("map.gpkg.new");
+    write_db(&tmp, 2000, 2);
+    std::fs::rename(&tmp, &db_path).unwrap();
+    server.signal(libc::SIGHUP);
+    let t0 = Instant::now();
+    let after = loop {
+        let i = info(&a, &url);
+        if i["database_id"] != before["database_id"] {
+            break i;
+        }
+        assert!(t0.elapsed() < Duration::from_secs(20), "no reload; log:\n{}", server.log());
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert_eq!(after["template_count"], 2000);
+    std::thread::sleep(Duration::from_millis(300));
+    stop.store(true, Ordering::Relaxed);
+    for l in loops {
+        l.join().expect("a client saw an error during the reload");
+    }
+    assert_eq!(*counts.lock().unwrap(), [2000, 3000].into_iter().collect());
+    println!("{} queries during the reload", done.load(Ordering::Relaxed));
+    // A file that is not a database: the reload fails, the old version stays.
+    std::fs::write(&tmp, b"not a database").unwrap();
+    std::fs::rename(&tmp, &db_path).unwrap();
+    server.signal(libc::SIGHUP);
+    std::thread::sleep(Duration::from_millis(500));
+    assert_eq!(info(&a, &url)["database_id"], after["database_id"]);
+    assert!(server.log().contains("reload failed"), "{}", server.log());
+
+    // SIGTERM: a clean exit.
+    let mut server = server;
+    server.signal(libc::SIGTERM);
+    let t0 = Instant::now();
+    let status = loop {
+        if let Some(s) = server.child.try_wait().unwrap() {
+            break s;
+        }
+        assert!(t0.elapsed() < Duration::from_secs(20), "still running after SIGTERM");
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert!(status.success(), "{status:?}; log:\n{}", server.log());
+}
+
+#[test]
+fn serve_names_bad_options() {
+    let dir = tempfile::tempdir().unwrap();
+    let missing = dir.path().join("nope.gpkg");
+    let o = run(&["serve", "--db", missing.to_str().unwrap(), "--listen", "127.0.0.1:0"]);
+    assert!(!o.status.success());
+    assert!(stderr(&o).contains("nope.gpkg"), "{}", stderr(&o));
+    let db = dir.path().join("map.gpkg");
+    write_db(&db, 10, 3);
+    let o = run(&["serve", "--db", db.to_str().unwrap(), "--listen", "not an address"]);
+    assert!(!o.status.success());
+    assert!(stderr(&o).contains("--listen"), "{}", stderr(&o));
+    let o = run(&["serve", "--db", db.to_str().unwrap(), "--timeout-s", "0"]);
+    assert!(stderr(&o).contains("--timeout-s"), "{}", stderr(&o));
+    let o = run(&["navigate", "--db", "x", "--server", "http://y", "--flight", "f", "--out", "o"]);
+    assert!(!o.status.success());
+    assert!(stderr(&o).contains("--server"), "{}", stderr(&o));
+}
+
+#[test]
+fn navigate_through_the_server_gives_the_same_poses_and_coverage_maps_them() {
+    // As tests/navigate.rs: a synthetic map, its database, a 3 s nadir flight.
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    let (ortho, dem) = synth(root, 1500, 4.0, 440000.0, 21);
+    let db = root.join("map.gpkg");
+    let o = run(&[
+        "build",
+        "--ortho",
+        ortho.to_str().unwrap(),
+        "--dem",
+        dem.to_str().unwrap(),
+        "--dem-vertical",
+        "ellipsoid",
+        "--spacing",
+        "32",
+        "--out",
+        db.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "build failed: {}", stderr(&o));
+    let scenario = root.join("scenario.json");
+    std::fs::write(
+        &scenario,
+        r#"{"name": "test", "seed": 5,
+            "camera": {"width": 320, "height": 240, "hfov_deg": 40},
+            "frame_rate_hz": 4,
+            "trajectory": {"kind": "balloon", "start_h_m": 4600, "end_h_m": 4000, "descent_rate_sl_m_s": 5,
+                           "yaw_rate_deg_s": 6, "spin_bursts": 0, "pendulum_deg": 2},
+            "init_error": {"horizontal_m": 100, "vertical_m": 30, "attitude_deg": 1},
+            "realism": {"noise": {}, "photometric": {}}}"#,
+    )
+    .unwrap();
+    let flight = root.join("flight");
+    let o = simulate(&ortho, &dem, &scenario, &flight, &["--duration", "3"]);
+    assert!(o.status.success(), "simulate failed: {}", stderr(&o));
+
+    let server = Server::start(&db, root.join("serve.log"), &[]);
+    let navigate = |source: &[&str], out: &Path| {
+        let mut args = vec!["navigate", "--flight", flight.to_str().unwrap(), "--out", out.to_str().unwrap()];
+        args.extend_from_slice(source);
+        let o = run(&args);
+        assert!(o.status.success(), "navigate {source:?} failed: {}", stderr(&o));
+    };
+    let (by_db, by_http) = (root.join("db").join("poses.csv"), root.join("http").join("poses.csv"));
+    std::fs::create_dir_all(by_db.parent().unwrap()).unwrap();
+    std::fs::create_dir_all(by_http.parent().unwrap()).unwrap();
+    navigate(&["--db", db.to_str().unwrap()], &by_db);
+    navigate(&["--server", &server.url], &by_http);
+    // Identical but the per-frame time column (ms, last).
+    let strip = |p: &Path| -> Vec<String> {
+        std::fs::read_to_string(p)
+            .unwrap()
+            .lines()
+            .map(|l| l.rsplit_once(',').map_or(l, |x| x.0).to_owned())
+            .collect()
+    };
+    let (a, b) = (strip(&by_db), strip(&by_http));
+    assert!(a.len() > 10, "{} rows", a.len());
+    assert_eq!(a, b, "poses through the server differ from the database's");
+    assert_eq!(
+        std::fs::read(by_db.with_file_name("matches.csv")).unwrap(),
+        std::fs::read(by_http.with_file_name("matches.csv")).unwrap()
+    );
+    assert!(a.iter().skip(1).filter(|l| l.contains(",fix,")).count() >= a.len() * 9 / 10);
+
+    // trn coverage on the flight's truth, as poses: every point sees landmarks.
+    let truth = std::fs::read_to_string(flight.join("truth.csv")).unwrap();
+    let poses: Vec<serde_json::Value> = truth
+        .lines()
+        .skip(1)
+        .step_by(4)
+        .map(|l| {
+            let v: Vec<f64> = l.split(',').map(|x| x.parse().unwrap()).collect();
+            serde_json::json!({"lat_deg": v[1], "lon_deg": v[2], "h_m": v[3], "q_ecef_cam": [v[4], v[5], v[6], v[7]]})
+        })
+        .collect();
+    let plan = root.join("plan.json");
+    let camera = std::fs::read_to_string(flight.join("camera.json")).unwrap();
+    std::fs::write(
+        &plan,
+        format!(r#"{{"camera": {camera}, "poses": {}}}"#, serde_json::Value::from(poses.clone())),
+    )
+    .unwrap();
+    let (geojson, png) = (root.join("cov.geojson"), root.join("cov.png"));
+    let o = run(&[
+        "coverage",
+        "--db",
+        db.to_str().unwrap(),
+        "--plan",
+        plan.to_str().unwrap(),
+        "--geojson",
+        geojson.to_str().unwrap(),
+        "--png",
+        png.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "coverage failed: {}", stderr(&o));
+    let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let pts = report["points"].as_array().unwrap();
+    assert_eq!(pts.len(), poses.len());
+    assert!(report["min_landmarks"].as_u64().unwrap() >= 8, "{report}");
+    assert_eq!(report["stretches"].as_array().unwrap().len(), 0);
+    let g: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&geojson).unwrap()).unwrap();
+    assert_eq!(g["type"], "FeatureCollection");
+    assert!(image::open(&png).unwrap().width() == 1024);
+    // The server's answer is the same report.
+    let body = std::fs::read_to_string(&plan).unwrap();
+    let (s, answer) = post(&agent(), &format!("{}/v1/coverage", server.url), &body);
+    assert_eq!(s, 200, "{}", String::from_utf8_lossy(&answer));
+    assert_eq!(serde_json::from_slice::<serde_json::Value>(&answer).unwrap(), report);
+}

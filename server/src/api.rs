@@ -305,22 +305,16 @@ pub async fn templates(
     }
     let bytes = db
         .run(move |conn| {
-            let ids = conn
-                .query_bbox_ids(&BboxQuery {
+            // One joined pass over the index and the rows (see LandmarkDb::query_bbox).
+            let all = conn
+                .query_bbox(&BboxQuery {
                     bbox: q.bbox,
                     levels: q.levels.clone(),
                     limit: Some(q.offset + q.limit + 1),
                 })
                 .map_err(store_error)?;
-            let truncated = ids.len() > q.offset + q.limit;
-            let mut list = Vec::with_capacity(q.limit.min(ids.len()));
-            for id in ids.into_iter().skip(q.offset).take(q.limit) {
-                list.push(
-                    conn.template(id)
-                        .map_err(store_error)?
-                        .ok_or_else(|| ApiError::internal(format!("template {id} is indexed but missing")))?,
-                );
-            }
+            let truncated = all.len() > q.offset + q.limit;
+            let list: Vec<_> = all.into_iter().skip(q.offset).take(q.limit).collect();
             if binary {
                 Ok(wire::encode(&list, truncated))
             } else {

@@ -22,6 +22,15 @@ const CANDIDATES_SQL: &str = "SELECT t.fid,
     WHERE r.max_lon >= ?1 AND r.min_lon <= ?2 AND r.max_lat >= ?3 AND r.min_lat <= ?4
       AND r.max_level >= ?5 AND r.min_level <= ?6";
 
+/// Whole rows of the R*Tree's candidates (same order of columns as [`template_columns`]).
+const FULL_SQL: &str = concat!(
+    "SELECT ",
+    template_columns!(),
+    " FROM templates_rtree AS r CROSS JOIN templates AS t ON t.fid = r.id
+    WHERE r.max_lon >= ?1 AND r.min_lon <= ?2 AND r.max_lat >= ?3 AND r.min_lat <= ?4
+      AND r.max_level >= ?5 AND r.min_level <= ?6"
+);
+
 /// A read-only connection to a trn landmark database.
 ///
 /// `Send` but not `Sync`: give each thread its own, via [`LandmarkDb::open`] or
@@ -110,17 +119,43 @@ impl LandmarkDb {
     }
 
     /// The templates matching `query` (see [`BboxQuery`]), pixels included, in the
-    /// order of [`LandmarkDb::query_bbox_ids`].
+    /// order of [`LandmarkDb::query_bbox_ids`]. One pass over the R*Tree joined with
+    /// the rows (not a lookup per id): the rows of a footprint lie close together.
     pub fn query_bbox(&self, query: &BboxQuery) -> Result<Vec<Template>, StoreError> {
-        self.query_bbox_ids(query)?
-            .into_iter()
-            .map(|id| {
-                self.template(id)?.ok_or_else(|| {
-                    StoreError::new(&self.path, StoreErrorKind::Corrupt("indexed but missing".into()))
-                        .with_template_id(id)
-                })
-            })
-            .collect()
+        let (min_level, max_level) = query.levels.as_ref().map_or((0, u8::MAX), |r| (*r.start(), *r.end()));
+        if min_level > max_level || query.limit == Some(0) {
+            return Ok(Vec::new());
+        }
+        let mut stmt = self.conn.prepare_cached(FULL_SQL).at(&self.path)?;
+        let mut found: Vec<Template> = Vec::new();
+        for part in query.bbox.split_antimeridian() {
+            let mut rows = stmt
+                .query(rusqlite::params![
+                    part.min_lon_deg,
+                    part.max_lon_deg,
+                    part.min_lat_deg,
+                    part.max_lat_deg,
+                    min_level,
+                    max_level
+                ])
+                .at(&self.path)?;
+            while let Some(row) = rows.next().at(&self.path)? {
+                let t = template_from_row(row, &self.path)?;
+                if query.bbox.intersects(&t.footprint) {
+                    found.push(t);
+                }
+            }
+        }
+        found.sort_by(|a, b| {
+            a.quality
+                .second_peak_ncc
+                .total_cmp(&b.quality.second_peak_ncc)
+                .then(b.quality.shi_tomasi.total_cmp(&a.quality.shi_tomasi))
+                .then(a.id.cmp(&b.id))
+        });
+        found.dedup_by_key(|t| t.id);
+        found.truncate(query.limit.unwrap_or(usize::MAX));
+        Ok(found)
     }
 
     /// Ids of the templates matching `query` (see [`BboxQuery`]), best first: ascending

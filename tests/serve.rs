@@ -295,6 +295,32 @@ fn thirty_two_clients_bad_input_reload_and_shutdown() {
 }
 
 #[test]
+fn watch_reloads_a_database_renamed_over_the_path() {
+    let dir = tempfile::tempdir().unwrap();
+    let db_path = dir.path().join("map.gpkg");
+    write_db(&db_path, 500, 3);
+    let server = Server::start(&db_path, dir.path().join("watch.log"), &["--watch"]);
+    let a = agent();
+    let before = info(&a, &server.url);
+    assert_eq!(before["template_count"], 500);
+    let tmp = dir.path().join("map.gpkg.new");
+    write_db(&tmp, 700, 4);
+    std::fs::rename(&tmp, &db_path).unwrap();
+    // No signal: the watcher notices the new file.
+    let t0 = Instant::now();
+    let after = loop {
+        let i = info(&a, &server.url);
+        if i["database_id"] != before["database_id"] {
+            break i;
+        }
+        assert!(t0.elapsed() < Duration::from_secs(20), "no reload; log:\n{}", server.log());
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    assert_eq!(after["template_count"], 700);
+    println!("--watch reloaded after {:.1} s", t0.elapsed().as_secs_f64());
+}
+
+#[test]
 fn serve_names_bad_options() {
     let dir = tempfile::tempdir().unwrap();
     let missing = dir.path().join("nope.gpkg");

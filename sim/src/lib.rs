@@ -29,6 +29,7 @@ use std::time::Instant;
 
 use indicatif::{ProgressBar, ProgressStyle};
 use nalgebra::{UnitQuaternion, Vector3};
+use rayon::prelude::*;
 use serde::Serialize;
 use tracing::{info, warn};
 use trn_camera::CameraPose;
@@ -151,6 +152,8 @@ pub fn simulate(opts: &SimOptions, cancel: &AtomicBool) -> Result<SimReport, Sim
     });
     let mut frames = Vec::with_capacity(n_frames);
     let (mut min_cov, mut min_ground, mut render_s) = (1.0f64, 1.0f64, 0.0);
+    // One frame's buffers, reused.
+    let mut img = render::RenderedFrame::default();
     for (k, pose) in truth.iter().enumerate() {
         if cancel.load(Ordering::Relaxed) {
             drop(tx);
@@ -159,7 +162,7 @@ pub fn simulate(opts: &SimOptions, cancel: &AtomicBool) -> Result<SimReport, Sim
         }
         let t0 = Instant::now();
         let cam_pose = CameraPose::new(pose.position.to_ecef(), pose.q_ecef_cam);
-        let mut img = renderer.render(&cam_pose);
+        renderer.render_into(&cam_pose, &mut img);
         let geo = FrameGeometry {
             camera: &camera,
             pose: &cam_pose,
@@ -174,19 +177,21 @@ pub fn simulate(opts: &SimOptions, cancel: &AtomicBool) -> Result<SimReport, Sim
             exposure_s: scenario.camera.exposure_s,
         };
         // Coverage before the effects change the grey levels.
-        let ground_px = img.range_m.iter().filter(|r| !r.is_nan()).count();
-        let covered = img
+        let (ground_px, covered) = img
             .grey
-            .iter()
+            .par_iter()
             .zip(&img.range_m)
-            .filter(|(g, r)| !r.is_nan() && **g != render::NODATA_DN)
-            .count();
+            .filter(|(_, r)| !r.is_nan())
+            .map(|(g, _)| (1usize, (*g != render::NODATA_DN) as usize))
+            .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
+        let t_fx = Instant::now();
         effects::apply(&scenario.realism, &mut img.grey, &geo, &ctx, scenario.seed);
+        tracing::debug!("effects {:.1} ms", 1e3 * t_fx.elapsed().as_secs_f64());
         min_ground = min_ground.min(ground_px as f64 / img.grey.len() as f64);
         if ground_px > 0 {
             min_cov = min_cov.min(covered as f64 / ground_px as f64);
         }
-        let pixels: Vec<u8> = img.grey.iter().map(|v| v.round().clamp(0.0, 255.0) as u8).collect();
+        let pixels: Vec<u8> = img.grey.par_iter().map(|v| v.round().clamp(0.0, 255.0) as u8).collect();
         render_s += t0.elapsed().as_secs_f64();
         let name = format!("images/{k:06}.png");
         if tx.send((dir.join(&name), pixels)).is_err() {

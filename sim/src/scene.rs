@@ -55,6 +55,12 @@ impl LatLonGrid<f32> {
     #[inline(always)]
     pub fn bilinear(&self, lat_deg: f64, lon_deg: f64) -> f64 {
         let (r, c) = self.position(lat_deg, lon_deg);
+        self.bilinear_at(r, c)
+    }
+
+    /// Bilinear value at a fractional grid position (row, col).
+    #[inline(always)]
+    pub fn bilinear_at(&self, r: f64, c: f64) -> f64 {
         let Some((i, tr, tc)) = self.cell(r, c) else { return f64::NAN };
         let v = &self.values;
         let (a, b, cc, d) =
@@ -138,6 +144,12 @@ impl Terrain {
     pub fn height_m(&self, lat_deg: f64, lon_deg: f64) -> f64 {
         self.heights.bilinear(lat_deg, lon_deg)
     }
+
+    /// Height at a fractional grid position (row, col), NaN where there is no DEM.
+    #[inline(always)]
+    pub fn height_at(&self, row: f64, col: f64) -> f64 {
+        self.heights.bilinear_at(row, col)
+    }
 }
 
 /// One level of the luminance pyramid (0..255, NaN = no data).
@@ -187,23 +199,81 @@ impl Level {
     }
 }
 
+/// Side of the square tiles a [`TiledLevel`] stores, apron included.
+const TILE_SIDE: usize = 32;
+/// Pixels a tile owns per side; its last row and column repeat the next tile's first.
+const TILE_STEP: usize = TILE_SIDE - 1;
+
+/// A pyramid level stored as 32 x 32 tiles of 4 KiB (one page) that overlap
+/// by one pixel, so every bilinear sample reads one tile: the pixels near a
+/// footprint share a few cache lines and pages, where rows of the whole
+/// level put each sample on a new page.
+#[derive(Clone, Debug)]
+pub struct TiledLevel {
+    pub width: usize,
+    pub height: usize,
+    tiles_x: usize,
+    data: Vec<f32>,
+}
+
+impl TiledLevel {
+    /// The tiles of a level (no data past its edges).
+    pub fn new(l: &Level) -> Self {
+        let tiles_x = l.width.div_ceil(TILE_STEP).max(1);
+        let tiles_y = l.height.div_ceil(TILE_STEP).max(1);
+        let mut data = vec![f32::NAN; tiles_x * tiles_y * TILE_SIDE * TILE_SIDE];
+        for (t, tile) in data.chunks_exact_mut(TILE_SIDE * TILE_SIDE).enumerate() {
+            let (x0, y0) = ((t % tiles_x) * TILE_STEP, (t / tiles_x) * TILE_STEP);
+            for (iy, row) in tile.chunks_exact_mut(TILE_SIDE).enumerate() {
+                let y = y0 + iy;
+                if y >= l.height {
+                    break;
+                }
+                let n = TILE_SIDE.min(l.width.saturating_sub(x0));
+                row[..n].copy_from_slice(&l.lum[y * l.width + x0..y * l.width + x0 + n]);
+            }
+        }
+        Self { width: l.width, height: l.height, tiles_x, data }
+    }
+
+    /// As [`Level::bilinear`] (bit for bit).
+    #[inline]
+    pub fn bilinear(&self, x: f64, y: f64) -> f32 {
+        if !(x >= 0.0 && y >= 0.0) {
+            return f32::NAN;
+        }
+        let (ix, iy) = (x as usize, y as usize);
+        if ix + 1 >= self.width || iy + 1 >= self.height {
+            return f32::NAN;
+        }
+        let (tx, ty) = ((x - ix as f64) as f32, (y - iy as f64) as f32);
+        let (cx, cy) = (ix / TILE_STEP, iy / TILE_STEP);
+        let i = (cy * self.tiles_x + cx) * TILE_SIDE * TILE_SIDE
+            + (iy - cy * TILE_STEP) * TILE_SIDE
+            + (ix - cx * TILE_STEP);
+        let l = &self.data[i..i + TILE_SIDE + 2];
+        (l[0] * (1.0 - tx) + l[1] * tx) * (1.0 - ty)
+            + (l[TILE_SIDE] * (1.0 - tx) + l[TILE_SIDE + 1] * tx) * ty
+    }
+}
+
 /// The ortho's luminance as a mip pyramid, sampled with a footprint.
 #[derive(Clone, Debug)]
 pub struct OrthoPyramid {
-    pub levels: Vec<Level>,
+    pub levels: Vec<TiledLevel>,
 }
 
 impl OrthoPyramid {
     /// Builds the pyramid down to a few pixels.
     pub fn new(level0: Level) -> Self {
-        let mut levels = vec![level0];
-        while levels.len() < 16 {
-            let last = levels.last().expect("level 0");
-            if last.width < 8 || last.height < 8 {
+        let mut levels = Vec::new();
+        let mut last = level0;
+        loop {
+            levels.push(TiledLevel::new(&last));
+            if levels.len() >= 16 || last.width < 8 || last.height < 8 {
                 break;
             }
-            let next = last.reduce();
-            levels.push(next);
+            last = last.reduce();
         }
         Self { levels }
     }
@@ -212,9 +282,22 @@ impl OrthoPyramid {
     /// footprint `footprint_px` level-0 pixels wide (<= 1: plain bilinear).
     #[inline]
     pub fn sample(&self, x: f64, y: f64, footprint_px: f64) -> f32 {
+        self.sample_lod(self.lod(footprint_px), x, y)
+    }
+
+    /// The levels and blend weight for a footprint `footprint_px` level-0
+    /// pixels wide (one logarithm, shared by the taps of one footprint).
+    #[inline]
+    pub fn lod(&self, footprint_px: f64) -> (usize, f32) {
         let lod = footprint_px.max(1.0).log2().min((self.levels.len() - 1) as f64);
-        let k = lod.floor() as usize;
-        let t = (lod - k as f64) as f32;
+        // Truncation is the floor here (lod >= 0), without a libm call.
+        let k = lod as usize;
+        (k, (lod - k as f64) as f32)
+    }
+
+    /// [`OrthoPyramid::sample`] with the levels from [`OrthoPyramid::lod`].
+    #[inline]
+    pub fn sample_lod(&self, (k, t): (usize, f32), x: f64, y: f64) -> f32 {
         let a = self.sample_level(k, x, y);
         if t < 1e-3 || k + 1 >= self.levels.len() {
             return a;
@@ -226,8 +309,9 @@ impl OrthoPyramid {
     /// i is centred on level-0 position 2^k i + (2^k - 1) / 2.
     #[inline]
     pub fn sample_level(&self, k: usize, x: f64, y: f64) -> f32 {
-        let s = (1u64 << k) as f64;
-        self.levels[k].bilinear((x + 0.5) / s - 0.5, (y + 0.5) / s - 0.5)
+        // A power of two: the product is exactly the quotient.
+        let inv = 1.0 / (1u64 << k) as f64;
+        self.levels[k].bilinear((x + 0.5) * inv - 0.5, (y + 0.5) * inv - 0.5)
     }
 }
 
@@ -373,6 +457,24 @@ mod tests {
                 let got = p.sample_level(k, x, y);
                 assert!((got - want).abs() < 1e-3, "level {k} at ({x}, {y}): {got} vs {want}");
             }
+        }
+    }
+
+    #[test]
+    fn tiled_level_samples_as_the_plain_level() {
+        let (w, h) = (101, 70);
+        let mut lum: Vec<f32> = (0..w * h).map(|i| ((i * 7919) % 255) as f32 * 0.5).collect();
+        lum[40 * w + 62] = f32::NAN;
+        let level = Level { width: w, height: h, lum };
+        let tiled = TiledLevel::new(&level);
+        let mut rng = crate::rng::Rng::stream(3, "tiles");
+        for _ in 0..20_000 {
+            let (x, y) = (rng.range(-2.0, w as f64 + 1.0), rng.range(-2.0, h as f64 + 1.0));
+            let (a, b) = (level.bilinear(x, y), tiled.bilinear(x, y));
+            assert!(a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan()), "({x}, {y}): {a} vs {b}");
+        }
+        for (x, y) in [(30.0, 30.5), (31.0, 61.99), (99.0, 68.0), (99.5, 30.0), (0.0, 0.0)] {
+            assert_eq!(level.bilinear(x, y).to_bits(), tiled.bilinear(x, y).to_bits(), "({x}, {y})");
         }
     }
 

@@ -184,7 +184,7 @@ struct NavigateArgs {
     /// Flight folder (flight format).
     #[arg(long)]
     flight: PathBuf,
-    /// Output poses.csv (matches.csv is written next to it).
+    /// Output poses.csv (matches.csv and covariance.csv are written next to it).
     #[arg(long)]
     out: PathBuf,
     /// Images per second taken from the flight (default: every image).

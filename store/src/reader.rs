@@ -31,6 +31,13 @@ const FULL_SQL: &str = concat!(
       AND r.max_level >= ?5 AND r.min_level <= ?6"
 );
 
+/// What the query order ranks by.
+struct Rank {
+    id: i64,
+    second_peak_ncc: f32,
+    shi_tomasi: f32,
+}
+
 /// A read-only connection to a trn landmark database.
 ///
 /// `Send` but not `Sync`: give each thread its own, via [`LandmarkDb::open`] or
@@ -122,40 +129,15 @@ impl LandmarkDb {
     /// order of [`LandmarkDb::query_bbox_ids`]. One pass over the R*Tree joined with
     /// the rows (not a lookup per id): the rows of a footprint lie close together.
     pub fn query_bbox(&self, query: &BboxQuery) -> Result<Vec<Template>, StoreError> {
-        let (min_level, max_level) = query.levels.as_ref().map_or((0, u8::MAX), |r| (*r.start(), *r.end()));
-        if min_level > max_level || query.limit == Some(0) {
-            return Ok(Vec::new());
-        }
-        let mut stmt = self.conn.prepare_cached(FULL_SQL).at(&self.path)?;
-        let mut found: Vec<Template> = Vec::new();
-        for part in query.bbox.split_antimeridian() {
-            let mut rows = stmt
-                .query(rusqlite::params![
-                    part.min_lon_deg,
-                    part.max_lon_deg,
-                    part.min_lat_deg,
-                    part.max_lat_deg,
-                    min_level,
-                    max_level
-                ])
-                .at(&self.path)?;
-            while let Some(row) = rows.next().at(&self.path)? {
-                let t = template_from_row(row, &self.path)?;
-                if query.bbox.intersects(&t.footprint) {
-                    found.push(t);
-                }
-            }
-        }
-        found.sort_by(|a, b| {
-            a.quality
-                .second_peak_ncc
-                .total_cmp(&b.quality.second_peak_ncc)
-                .then(b.quality.shi_tomasi.total_cmp(&a.quality.shi_tomasi))
-                .then(a.id.cmp(&b.id))
-        });
-        found.dedup_by_key(|t| t.id);
-        found.truncate(query.limit.unwrap_or(usize::MAX));
-        Ok(found)
+        self.ranked(FULL_SQL, query, |row| {
+            let t = template_from_row(row, &self.path)?;
+            let rank = Rank {
+                id: t.id,
+                second_peak_ncc: t.quality.second_peak_ncc,
+                shi_tomasi: t.quality.shi_tomasi,
+            };
+            Ok(query.bbox.intersects(&t.footprint).then_some((rank, t)))
+        })
     }
 
     /// Ids of the templates matching `query` (see [`BboxQuery`]), best first: ascending
@@ -166,16 +148,40 @@ impl LandmarkDb {
     /// The R*Tree holds float32 bounds rounded outward, so it only proposes candidates;
     /// each is rechecked in double precision with [`GeoBox::intersects`].
     pub fn query_bbox_ids(&self, query: &BboxQuery) -> Result<Vec<i64>, StoreError> {
+        self.ranked(CANDIDATES_SQL, query, |row| {
+            let footprint = GeoBox {
+                min_lon_deg: row.get(1).at(&self.path)?,
+                min_lat_deg: row.get(2).at(&self.path)?,
+                max_lon_deg: row.get(3).at(&self.path)?,
+                max_lat_deg: row.get(4).at(&self.path)?,
+            };
+            if !query.bbox.intersects(&footprint) {
+                return Ok(None);
+            }
+            let id: i64 = row.get(0).at(&self.path)?;
+            let rank = Rank {
+                id,
+                second_peak_ncc: row.get(5).at(&self.path)?,
+                shi_tomasi: row.get(6).at(&self.path)?,
+            };
+            Ok(Some((rank, id)))
+        })
+    }
+
+    /// Runs `sql` (an R*Tree query taking the box and level bounds) over each side
+    /// of the antimeridian, keeps what `keep` accepts (it rechecks the exact box),
+    /// and returns it best first, without duplicates, cut to the limit.
+    fn ranked<T>(
+        &self,
+        sql: &str,
+        query: &BboxQuery,
+        keep: impl Fn(&rusqlite::Row<'_>) -> Result<Option<(Rank, T)>, StoreError>,
+    ) -> Result<Vec<T>, StoreError> {
         let (min_level, max_level) = query.levels.as_ref().map_or((0, u8::MAX), |r| (*r.start(), *r.end()));
         if min_level > max_level || query.limit == Some(0) {
             return Ok(Vec::new());
         }
-        struct Candidate {
-            id: i64,
-            second_peak_ncc: f32,
-            shi_tomasi: f32,
-        }
-        let mut stmt = self.conn.prepare_cached(CANDIDATES_SQL).at(&self.path)?;
+        let mut stmt = self.conn.prepare_cached(sql).at(&self.path)?;
         let mut found = Vec::new();
         for part in query.bbox.split_antimeridian() {
             let mut rows = stmt
@@ -189,32 +195,20 @@ impl LandmarkDb {
                 ])
                 .at(&self.path)?;
             while let Some(row) = rows.next().at(&self.path)? {
-                let footprint = GeoBox {
-                    min_lon_deg: row.get(1).at(&self.path)?,
-                    min_lat_deg: row.get(2).at(&self.path)?,
-                    max_lon_deg: row.get(3).at(&self.path)?,
-                    max_lat_deg: row.get(4).at(&self.path)?,
-                };
-                if query.bbox.intersects(&footprint) {
-                    found.push(Candidate {
-                        id: row.get(0).at(&self.path)?,
-                        second_peak_ncc: row.get(5).at(&self.path)?,
-                        shi_tomasi: row.get(6).at(&self.path)?,
-                    });
-                }
+                found.extend(keep(row)?);
             }
         }
         found.sort_by(|a, b| {
-            a.second_peak_ncc
-                .total_cmp(&b.second_peak_ncc)
-                .then(b.shi_tomasi.total_cmp(&a.shi_tomasi))
-                .then(a.id.cmp(&b.id))
+            a.0.second_peak_ncc
+                .total_cmp(&b.0.second_peak_ncc)
+                .then(b.0.shi_tomasi.total_cmp(&a.0.shi_tomasi))
+                .then(a.0.id.cmp(&b.0.id))
         });
         // A template can match both halves of an antimeridian-crossing query; its
         // duplicates sort next to each other.
-        found.dedup_by_key(|c| c.id);
+        found.dedup_by_key(|c| c.0.id);
         found.truncate(query.limit.unwrap_or(usize::MAX));
-        Ok(found.into_iter().map(|c| c.id).collect())
+        Ok(found.into_iter().map(|c| c.1).collect())
     }
 
     /// Calls `f` with every template, pixels included, in id order; stops at the first error.

@@ -85,3 +85,54 @@ pub fn simulate(ortho: &Path, dem: &Path, scenario: &Path, out: &Path, extra: &[
     args.extend_from_slice(extra);
     run(&args)
 }
+
+/// A synthetic map, its landmark database (`--spacing 32`) and a 3 s nadir
+/// flight 3 km above the terrain, in a temp dir.
+pub struct NavFixture {
+    pub dir: tempfile::TempDir,
+    pub db: PathBuf,
+    pub flight: PathBuf,
+}
+
+impl NavFixture {
+    pub fn root(&self) -> &Path {
+        self.dir.path()
+    }
+}
+
+pub fn nav_fixture() -> NavFixture {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().to_path_buf();
+    let (ortho, dem) = synth(&root, 1500, 4.0, 440000.0, 21);
+    let db = root.join("map.gpkg");
+    let o = run(&[
+        "build",
+        "--ortho",
+        ortho.to_str().unwrap(),
+        "--dem",
+        dem.to_str().unwrap(),
+        "--dem-vertical",
+        "ellipsoid",
+        "--spacing",
+        "32",
+        "--out",
+        db.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "build failed: {}", stderr(&o));
+    let scenario = root.join("scenario.json");
+    std::fs::write(
+        &scenario,
+        r#"{"name": "test", "seed": 5,
+            "camera": {"width": 320, "height": 240, "hfov_deg": 40},
+            "frame_rate_hz": 4,
+            "trajectory": {"kind": "balloon", "start_h_m": 4600, "end_h_m": 4000, "descent_rate_sl_m_s": 5,
+                           "yaw_rate_deg_s": 6, "spin_bursts": 0, "pendulum_deg": 2},
+            "init_error": {"horizontal_m": 100, "vertical_m": 30, "attitude_deg": 1},
+            "realism": {"noise": {}, "photometric": {}}}"#,
+    )
+    .unwrap();
+    let flight = root.join("flight");
+    let o = simulate(&ortho, &dem, &scenario, &flight, &["--duration", "3"]);
+    assert!(o.status.success(), "simulate failed: {}", stderr(&o));
+    NavFixture { dir, db, flight }
+}

@@ -383,6 +383,10 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
         a.gyro_bias.is_finite() && a.gyro_bias > 0.0,
         "invalid option --gyro-bias: must be deg/h > 0"
     );
+    if let Some(dir) = &a.matches_dir {
+        std::fs::create_dir_all(dir)
+            .map_err(|e| anyhow::anyhow!("invalid option --matches-dir {}: {e}", dir.display()))?;
+    }
     let flight = trn_flight::Flight::open(&a.flight)?;
     let source: Box<dyn trn_navigator::LandmarkSource> = match (&a.db, &a.server) {
         (Some(db), _) => Box::new(trn_navigator::DbSource::open(db)?),
@@ -396,10 +400,6 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
     params.max_landmarks = a.max_landmarks;
     params.gyro_arw_deg_sqrt_s = a.gyro_arw / 60.0;
     params.gyro_bias_deg_s = a.gyro_bias / 3600.0;
-    if let Some(dir) = &a.matches_dir {
-        std::fs::create_dir_all(dir)
-            .map_err(|e| anyhow::anyhow!("invalid option --matches-dir {}: {e}", dir.display()))?;
-    }
     let opts = trn_navigator::RunOptions { rate_hz: a.rate, params, matches_dir: a.matches_dir.clone() };
     let bar = indicatif::ProgressBar::new(flight.frames.len() as u64);
     bar.set_style(

@@ -4,25 +4,11 @@
 
 mod common;
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use common::{nav_fixture, run, stderr, NavFixture};
 
-/// Map, database and a 3 s nadir flight 3 km above the terrain.
-struct Setup {
-    _fixture: NavFixture,
-    db: PathBuf,
-    flight: PathBuf,
-    root: PathBuf,
-}
-
-fn setup() -> Setup {
-    let f = nav_fixture();
-    let (db, flight, root) = (f.db.clone(), f.flight.clone(), f.root().to_path_buf());
-    Setup { _fixture: f, db, flight, root }
-}
-
-fn navigate(s: &Setup, out: &Path, extra: &[&str]) -> std::process::Output {
+fn navigate(s: &NavFixture, out: &Path, extra: &[&str]) -> std::process::Output {
     let mut args = vec![
         "navigate",
         "--db",
@@ -36,8 +22,8 @@ fn navigate(s: &Setup, out: &Path, extra: &[&str]) -> std::process::Output {
     run(&args)
 }
 
-fn evaluate(s: &Setup, poses: &Path) -> serde_json::Value {
-    let json = s.root.join("eval.json");
+fn evaluate(s: &NavFixture, poses: &Path) -> serde_json::Value {
+    let json = s.root().join("eval.json");
     let o = run(&[
         "evaluate",
         "--flight",
@@ -53,8 +39,8 @@ fn evaluate(s: &Setup, poses: &Path) -> serde_json::Value {
 
 #[test]
 fn navigates_a_simulated_flight_to_metres() {
-    let s = setup();
-    let poses = s.root.join("poses.csv");
+    let s = nav_fixture();
+    let poses = s.root().join("poses.csv");
     let o = navigate(&s, &poses, &[]);
     assert!(o.status.success(), "navigate failed: {}", stderr(&o));
     let report = evaluate(&s, &poses);
@@ -70,9 +56,9 @@ fn navigates_a_simulated_flight_to_metres() {
     // matches.csv sits next to poses.csv, one row per correlation match,
     // with the landmark's ECEF position: the truth pose projects an inlier's
     // landmark where it was found.
-    let text = std::fs::read_to_string(s.root.join("matches.csv")).unwrap();
+    let text = std::fs::read_to_string(s.root().join("matches.csv")).unwrap();
     assert!(text.starts_with("t,landmark,u,v,pred_u,pred_v,residual_px,inlier,x_m,y_m,z_m\n"));
-    let matches = trn_flight::read_match_records(&s.root.join("matches.csv")).unwrap();
+    let matches = trn_flight::read_match_records(&s.root().join("matches.csv")).unwrap();
     assert!(matches.len() > 13 * 8);
     let flight = trn_flight::Flight::open(&s.flight).unwrap();
     let mut off: Vec<f64> = matches
@@ -92,7 +78,7 @@ fn navigates_a_simulated_flight_to_metres() {
     assert!(median < 0.5 && worst < 4.0, "{median} {worst} px");
     // covariance.csv: one row per fix, positive standard deviations that
     // are about the size of the errors.
-    let cov = std::fs::read_to_string(s.root.join("covariance.csv")).unwrap();
+    let cov = std::fs::read_to_string(s.root().join("covariance.csv")).unwrap();
     let mut lines = cov.lines();
     let header: Vec<&str> = lines.next().unwrap().split(',').collect();
     assert_eq!(header.len(), 7 + 21);
@@ -109,8 +95,8 @@ fn navigates_a_simulated_flight_to_metres() {
     // At 2 images per second only every other frame is processed while fixes
     // are accepted.
     // With --matches-dir, one picture per processed frame, named after its image.
-    let half = s.root.join("half.csv");
-    let pics = s.root.join("pictures/of/matches");
+    let half = s.root().join("half.csv");
+    let pics = s.root().join("pictures/of/matches");
     let o = navigate(&s, &half, &["--rate", "2", "--no-gyro", "--matches-dir", pics.to_str().unwrap()]);
     assert!(o.status.success(), "navigate failed: {}", stderr(&o));
     let csv = std::fs::read_to_string(&half).unwrap();
@@ -149,9 +135,18 @@ fn bad_inputs_are_named() {
     let e = stderr(&o);
     assert!(e.contains("nope"), "{e}");
     assert!(!out.exists());
-    for (opt, value) in
-        [("--rate", "0"), ("--alpha-max", "90"), ("--min-inliers", "3"), ("--max-landmarks", "2")]
-    {
+    // --matches-dir naming an existing file cannot be a folder.
+    std::fs::write(dir.path().join("file"), b"").unwrap();
+    let file = dir.path().join("file");
+    for (opt, value) in [
+        ("--rate", "0"),
+        ("--alpha-max", "90"),
+        ("--min-inliers", "3"),
+        ("--max-landmarks", "2"),
+        ("--gyro-arw", "0"),
+        ("--gyro-bias", "nan"),
+        ("--matches-dir", file.to_str().unwrap()),
+    ] {
         let o = run(&["navigate", "--db", "x", "--flight", "y", "--out", "z", opt, value]);
         assert!(!o.status.success(), "{opt} {value} accepted");
         let e = stderr(&o);

@@ -231,22 +231,23 @@ impl<'a> Navigator<'a> {
                     self.t = t;
                     // The covariance of a fix from few matches is pessimistic;
                     // the next search only needs to cover a plausible miss.
-                    self.sigma_m = sol.sigma_m.clamp(2.0, 200.0);
+                    let (att_cov, pos_cov) = (sol.attitude_covariance(), sol.position_covariance());
+                    self.sigma_m = pos_cov.trace().max(0.0).sqrt().clamp(2.0, 200.0);
                     covariance = Some(PoseCovariance {
                         t,
                         position: sol.pose.position.to_geodetic(),
                         ecef: sol.covariance,
                     });
                     if !self.params.use_gyro || sol.prior_loosened {
-                        self.filter.reset_attitude(&propagated, &sol.att_cov);
+                        self.filter.reset_attitude(&propagated, &att_cov);
                     } else {
                         let dtheta = rotation_vector(&(sol.pose.q_ecef_cam * guess.q_ecef_cam.inverse()));
-                        self.filter.update(&propagated, &dtheta, &sol.att_cov);
+                        self.filter.update(&propagated, &dtheta, &att_cov);
                     }
                     if tracing::enabled!(tracing::Level::DEBUG) {
                         let r = trn_geodesy::LocalFrame::at(sol.pose.position.to_geodetic()).r_ecef_enu();
-                        let p = r.transpose() * sol.att_cov * r;
-                        let ps = r.transpose() * sol.pos_cov * r;
+                        let p = r.transpose() * att_cov * r;
+                        let ps = r.transpose() * pos_cov * r;
                         debug!(
                             "t {t:.3}: attitude sigma e/n/u {:.4} {:.4} {:.4} deg, position {:.1} {:.1} {:.1} m, gyro bias {:.2} {:.2} {:.2} deg/h",
                             p[(0, 0)].sqrt().to_degrees(),
@@ -524,7 +525,6 @@ impl<'a> Navigator<'a> {
                 landmark_ecef: Some(trn_geodesy::Ecef(points[i])),
             });
         }
-        let sigma_m = refined.position_covariance().trace().max(0.0).sqrt();
         Ok(Solution {
             pose: refined.pose,
             inliers,
@@ -532,9 +532,6 @@ impl<'a> Navigator<'a> {
             records,
             points,
             guess_px: Vec::new(),
-            sigma_m,
-            att_cov: refined.attitude_covariance(),
-            pos_cov: refined.position_covariance(),
             covariance: refined.covariance,
             prior_loosened,
             mean_landmark_h: (inliers > 0).then(|| h_sum / inliers as f64),
@@ -609,13 +606,19 @@ struct Solution {
     points: Vec<Vector3<f64>>,
     /// Where the frame's pose guess put each record's landmark (after sorting).
     guess_px: Vec<Option<Pixel>>,
-    sigma_m: f64,
-    /// Posterior attitude covariance (prior included).
-    att_cov: Matrix3<f64>,
-    pos_cov: Matrix3<f64>,
-    /// Of `[dtheta; dp]` (see `trn_vision::pnp`).
+    /// Of `[dtheta; dp]` (see `trn_vision::pnp`), the prior included.
     covariance: Matrix6<f64>,
-    /// The image disagreed with the gyro prior; it was refined again without it.
+    /// The image disagreed with the gyro prior; it was refined again with the prior loosened.
     prior_loosened: bool,
     mean_landmark_h: Option<f64>,
+}
+
+impl Solution {
+    fn attitude_covariance(&self) -> Matrix3<f64> {
+        self.covariance.fixed_view::<3, 3>(0, 0).into_owned()
+    }
+
+    fn position_covariance(&self) -> Matrix3<f64> {
+        self.covariance.fixed_view::<3, 3>(3, 3).into_owned()
+    }
 }

@@ -297,36 +297,46 @@ pub async fn templates(
 ) -> Result<Response, ApiError> {
     let Query(params) = params.map_err(|r| ApiError::bad_request(r.body_text()))?;
     let q = params.check()?;
+    read_answer(&state, &headers, move |conn, binary| {
+        // One joined pass over the index and the rows (see LandmarkDb::query_bbox).
+        let all = conn
+            .query_bbox(&BboxQuery {
+                bbox: q.bbox,
+                levels: q.levels.clone(),
+                limit: Some(q.offset + q.limit + 1),
+            })
+            .map_err(store_error)?;
+        let truncated = all.len() > q.offset + q.limit;
+        let list: Vec<_> = all.into_iter().skip(q.offset).take(q.limit).collect();
+        if binary {
+            Ok(wire::encode(&list, truncated))
+        } else {
+            json(&TemplatesResponse {
+                templates: list.iter().map(TemplateSummary::from).collect(),
+                truncated,
+            })
+        }
+    })
+    .await
+}
+
+/// Answers a read of the database in JSON or, when asked for, the binary
+/// encoding: a 304 without running `query` when the client's ETag is current
+/// (the binary representation has its own), else `query`'s bytes with the ETag.
+async fn read_answer(
+    state: &AppState,
+    headers: &HeaderMap,
+    query: impl FnOnce(&trn_store::LandmarkDb, bool) -> Result<Vec<u8>, ApiError> + Send + 'static,
+) -> Result<Response, ApiError> {
     let db = state.db.load_full();
-    let binary = wants_binary(&headers);
+    let binary = wants_binary(headers);
     let etag = if binary { format!("{}-b\"", db.etag.trim_end_matches('"')) } else { db.etag.clone() };
-    if not_modified(&headers, &etag) {
-        return Ok(cached(&headers, &etag, || StatusCode::NOT_MODIFIED.into_response()));
+    if not_modified(headers, &etag) {
+        return Ok(cached(headers, &etag, || StatusCode::NOT_MODIFIED.into_response()));
     }
-    let bytes = db
-        .run(move |conn| {
-            // One joined pass over the index and the rows (see LandmarkDb::query_bbox).
-            let all = conn
-                .query_bbox(&BboxQuery {
-                    bbox: q.bbox,
-                    levels: q.levels.clone(),
-                    limit: Some(q.offset + q.limit + 1),
-                })
-                .map_err(store_error)?;
-            let truncated = all.len() > q.offset + q.limit;
-            let list: Vec<_> = all.into_iter().skip(q.offset).take(q.limit).collect();
-            if binary {
-                Ok(wire::encode(&list, truncated))
-            } else {
-                json(&TemplatesResponse {
-                    templates: list.iter().map(TemplateSummary::from).collect(),
-                    truncated,
-                })
-            }
-        })
-        .await?;
+    let bytes = db.run(move |conn| query(conn, binary)).await?;
     let ct = if binary { wire::MEDIA_TYPE } else { "application/json" };
-    Ok(cached(&headers, &etag, || body(ct, bytes)))
+    Ok(cached(headers, &etag, || body(ct, bytes)))
 }
 
 #[utoipa::path(
@@ -350,27 +360,18 @@ pub async fn template(
     let id: i64 = id
         .parse()
         .map_err(|_| ApiError::bad_request(format!("id: {shown:?} is not a template id (an integer)")))?;
-    let db = state.db.load_full();
-    let binary = wants_binary(&headers);
-    let etag = if binary { format!("{}-b\"", db.etag.trim_end_matches('"')) } else { db.etag.clone() };
-    if not_modified(&headers, &etag) {
-        return Ok(cached(&headers, &etag, || StatusCode::NOT_MODIFIED.into_response()));
-    }
-    let bytes = db
-        .run(move |conn| {
-            let t = conn
-                .template(id)
-                .map_err(store_error)?
-                .ok_or_else(|| ApiError::not_found(format!("id: no template {id} in this database")))?;
-            if binary {
-                Ok(wire::encode([&t], false))
-            } else {
-                json(&t)
-            }
-        })
-        .await?;
-    let ct = if binary { wire::MEDIA_TYPE } else { "application/json" };
-    Ok(cached(&headers, &etag, || body(ct, bytes)))
+    read_answer(&state, &headers, move |conn, binary| {
+        let t = conn
+            .template(id)
+            .map_err(store_error)?
+            .ok_or_else(|| ApiError::not_found(format!("id: no template {id} in this database")))?;
+        if binary {
+            Ok(wire::encode([&t], false))
+        } else {
+            json(&t)
+        }
+    })
+    .await
 }
 
 #[utoipa::path(

@@ -18,6 +18,19 @@ pub trait LandmarkSource {
     fn query(&self, bbox: &GeoBox, level: u8) -> Result<Vec<Template>, SourceError>;
 }
 
+/// A landmark database used directly: also one borrowed connection (the
+/// server's).
+impl LandmarkSource for LandmarkDb {
+    fn levels(&self) -> Result<Vec<LevelInfo>, SourceError> {
+        LandmarkDb::levels(self).map_err(|e| SourceError(e.to_string()))
+    }
+
+    fn query(&self, bbox: &GeoBox, level: u8) -> Result<Vec<Template>, SourceError> {
+        self.query_bbox(&BboxQuery::new(*bbox).with_levels(level..=level))
+            .map_err(|e| SourceError(e.to_string()))
+    }
+}
+
 /// A landmark database opened directly.
 pub struct DbSource {
     db: LandmarkDb,
@@ -31,12 +44,10 @@ impl DbSource {
 
 impl LandmarkSource for DbSource {
     fn levels(&self) -> Result<Vec<LevelInfo>, SourceError> {
-        self.db.levels().map_err(|e| SourceError(e.to_string()))
+        LandmarkSource::levels(&self.db)
     }
 
     fn query(&self, bbox: &GeoBox, level: u8) -> Result<Vec<Template>, SourceError> {
-        self.db
-            .query_bbox(&BboxQuery::new(*bbox).with_levels(level..=level))
-            .map_err(|e| SourceError(e.to_string()))
+        LandmarkSource::query(&self.db, bbox, level)
     }
 }

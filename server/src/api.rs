@@ -12,7 +12,7 @@ use trn_store::BboxQuery;
 use utoipa::{IntoParams, OpenApi, ToSchema};
 
 use crate::coverage::{self, CoverageReport, CoverageRequest, FootprintRequest, FootprintResponse};
-use crate::db::{store_error, ConnSource, Info};
+use crate::db::{store_error, Info};
 use crate::error::{ApiError, ErrorBody};
 use crate::AppState;
 
@@ -393,7 +393,7 @@ pub async fn footprint(
     let levels = db.levels.clone();
     let bytes = db
         .run(move |conn| {
-            let r = coverage::footprint_query(&ConnSource { db: conn }, &levels, &req)?;
+            let r = coverage::footprint_query(conn, &levels, &req)?;
             json(&r)
         })
         .await?;
@@ -423,7 +423,7 @@ pub async fn coverage(
     let levels = db.levels.clone();
     let bytes = db
         .run(move |conn| {
-            let r = coverage::coverage_query(&ConnSource { db: conn }, &levels, &req)?;
+            let r = coverage::coverage_query(conn, &levels, &req)?;
             if geojson {
                 json(&coverage::to_geojson(&r))
             } else {

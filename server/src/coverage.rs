@@ -630,8 +630,7 @@ pub fn run_cli(
         serde_json::from_str(&text).map_err(|e| file_err(plan, format!("not a coverage plan: {e}")))?;
     let conn = trn_store::LandmarkDb::open(db)?;
     let levels: Vec<(u8, f64)> = conn.levels()?.iter().map(|l| (l.level, l.gsd_m)).collect();
-    let source = crate::db::ConnSource { db: &conn };
-    let report = coverage_query(&source, &levels, &req).map_err(|e| file_err(plan, e.message))?;
+    let report = coverage_query(&conn, &levels, &req).map_err(|e| file_err(plan, e.message))?;
     if let Some(path) = geojson {
         let text =
             serde_json::to_string_pretty(&to_geojson(&report)).map_err(|e| file_err(path, e.to_string()))?;

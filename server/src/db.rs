@@ -12,9 +12,7 @@ use std::sync::{Arc, Mutex};
 use serde::Serialize;
 use tokio::sync::Semaphore;
 use trn_landmark::GeoBox;
-use trn_landmark::Template;
-use trn_navigator::{LandmarkSource, SourceError};
-use trn_store::{BboxQuery, LandmarkDb, LevelInfo, StoreError};
+use trn_store::{LandmarkDb, LevelInfo, StoreError};
 use utoipa::ToSchema;
 
 use crate::error::{ApiError, ServerError};
@@ -157,23 +155,6 @@ impl Drop for Checkout<'_> {
         if let Some(db) = self.db.take() {
             self.pool.conns.lock().unwrap_or_else(|p| p.into_inner()).push(db);
         }
-    }
-}
-
-/// A [`LandmarkSource`] over one borrowed connection, for the navigator's view code.
-pub struct ConnSource<'a> {
-    pub db: &'a LandmarkDb,
-}
-
-impl LandmarkSource for ConnSource<'_> {
-    fn levels(&self) -> Result<Vec<LevelInfo>, SourceError> {
-        self.db.levels().map_err(|e| SourceError(e.to_string()))
-    }
-
-    fn query(&self, bbox: &GeoBox, level: u8) -> Result<Vec<Template>, SourceError> {
-        self.db
-            .query_bbox(&BboxQuery::new(*bbox).with_levels(level..=level))
-            .map_err(|e| SourceError(e.to_string()))
     }
 }
 

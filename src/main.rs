@@ -108,6 +108,11 @@ struct BuildArgs {
     /// Worker threads (default: all cores).
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=1024))]
     threads: Option<u32>,
+    /// Serve from memory when the whole database (encoded templates and index)
+    /// fits in this many MB; a larger one is queried in SQLite. 0: never.
+    #[arg(long, default_value_t = trn_server::DEFAULT_CACHE_MB,
+          value_parser = clap::value_parser!(u64).range(0..=1 << 24))]
+    cache_mb: u64,
 }
 
 #[derive(clap::Args)]
@@ -171,6 +176,11 @@ struct SimulateArgs {
     /// Worker threads (default: all cores).
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=1024))]
     threads: Option<u32>,
+    /// Serve from memory when the whole database (encoded templates and index)
+    /// fits in this many MB; a larger one is queried in SQLite. 0: never.
+    #[arg(long, default_value_t = trn_server::DEFAULT_CACHE_MB,
+          value_parser = clap::value_parser!(u64).range(0..=1 << 24))]
+    cache_mb: u64,
 }
 
 #[derive(clap::Args)]
@@ -520,6 +530,11 @@ struct ServeArgs {
     /// Worker threads (default: all cores).
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=1024))]
     threads: Option<u32>,
+    /// Serve from memory when the whole database (encoded templates and index)
+    /// fits in this many MB; a larger one is queried in SQLite. 0: never.
+    #[arg(long, default_value_t = trn_server::DEFAULT_CACHE_MB,
+          value_parser = clap::value_parser!(u64).range(0..=1 << 24))]
+    cache_mb: u64,
 }
 
 #[derive(clap::Args)]
@@ -555,6 +570,7 @@ fn run_serve(a: ServeArgs) -> anyhow::Result<()> {
     o.max_body_bytes = a.max_body_bytes;
     o.watch = a.watch;
     o.threads = a.threads.map(|n| n as usize);
+    o.cache_bytes = a.cache_mb << 20;
     trn_server::serve(o, |addr| {
         use std::io::Write;
         // Scripts and tests read the bound address from this line.

@@ -55,28 +55,38 @@ impl fmt::Display for WireError {
 impl std::error::Error for WireError {}
 
 /// Bytes of a record without height grid and pixels.
-const MIN_RECORD_LEN: usize = 8 + 1 + 4 * 3 + 8 * 12 + 4 + 8 + 4 * 3;
+pub const MIN_RECORD_LEN: usize = 8 + 1 + 4 * 3 + 8 * 12 + 4 + 8 + 4 * 3;
 
 /// Bytes one template takes.
 pub fn encoded_len(t: &Template) -> usize {
     MIN_RECORD_LEN + 4 * t.terrain.height_grid.heights_m.len() + t.pixels.len()
 }
 
+/// Bytes of the header.
+pub const HEADER_LEN: usize = 16;
+
 /// Encodes `templates` with the header.
 pub fn encode<'a>(templates: impl IntoIterator<Item = &'a Template>, truncated: bool) -> Vec<u8> {
     let list: Vec<&Template> = templates.into_iter().collect();
-    let mut out = Vec::with_capacity(16 + list.iter().map(|t| encoded_len(t)).sum::<usize>());
-    out.extend_from_slice(&MAGIC);
-    out.extend_from_slice(&VERSION.to_le_bytes());
-    out.extend_from_slice(&u32::from(truncated).to_le_bytes());
-    out.extend_from_slice(&(list.len() as u32).to_le_bytes());
+    let mut out = Vec::with_capacity(HEADER_LEN + list.iter().map(|t| encoded_len(t)).sum::<usize>());
+    write_header(&mut out, list.len() as u32, truncated);
     for t in list {
-        encode_one(t, &mut out);
+        encode_record(t, &mut out);
     }
     out
 }
 
-fn encode_one(t: &Template, out: &mut Vec<u8>) {
+/// Appends the header of a list of `count` records (which the caller then
+/// appends, e.g. records kept from [`encode_record`]).
+pub fn write_header(out: &mut Vec<u8>, count: u32, truncated: bool) {
+    out.extend_from_slice(&MAGIC);
+    out.extend_from_slice(&VERSION.to_le_bytes());
+    out.extend_from_slice(&u32::from(truncated).to_le_bytes());
+    out.extend_from_slice(&count.to_le_bytes());
+}
+
+/// Appends one template's record ([`encoded_len`] bytes).
+pub fn encode_record(t: &Template, out: &mut Vec<u8>) {
     out.extend_from_slice(&t.id.to_le_bytes());
     out.push(t.level);
     for v in [t.width_px, t.height_px, t.source] {
@@ -175,6 +185,16 @@ pub fn decode(bytes: &[u8]) -> Result<TemplateList, WireError> {
     Ok(TemplateList { templates, truncated: flags & 1 != 0 })
 }
 
+/// Decodes one record (as [`encode_record`] wrote it); trailing bytes are an error.
+pub fn decode_record(bytes: &[u8]) -> Result<Template, WireError> {
+    let mut r = Reader { buf: bytes, pos: 0 };
+    let t = decode_one(&mut r)?;
+    if r.pos != bytes.len() {
+        return Err(WireError(format!("{} bytes after the record", bytes.len() - r.pos)));
+    }
+    Ok(t)
+}
+
 fn decode_one(r: &mut Reader) -> Result<Template, WireError> {
     let id = i64::from_le_bytes(r.array("id")?);
     let level = r.take(1, "level")?[0];
@@ -261,6 +281,26 @@ mod tests {
             assert_eq!(back.templates, ts);
         }
         assert_eq!(decode(&encode(&[], false)).unwrap().templates, vec![]);
+    }
+
+    #[test]
+    fn records_written_apart_make_the_same_list() {
+        let ts = vec![template(7, 8, 3), template(-2, 3, 1)];
+        let mut records = Vec::new();
+        for t in &ts {
+            let start = records.len();
+            encode_record(t, &mut records);
+            assert_eq!(records.len() - start, encoded_len(t));
+            assert_eq!(decode_record(&records[start..]).unwrap(), *t);
+        }
+        let mut out = Vec::new();
+        write_header(&mut out, 2, true);
+        assert_eq!(out.len(), HEADER_LEN);
+        out.extend_from_slice(&records);
+        assert_eq!(out, encode(&ts, true));
+        let mut extra = records[..encoded_len(&ts[0])].to_vec();
+        extra.push(1);
+        assert!(decode_record(&extra).unwrap_err().0.contains("after the record"));
     }
 
     #[test]

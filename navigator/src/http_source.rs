@@ -87,11 +87,7 @@ impl HttpSource {
             .map_err(|e| SourceError(format!("{url}: {e}")))?;
         let status = resp.status();
         let etag = resp.headers().get("etag").and_then(|v| v.to_str().ok()).map(str::to_owned);
-        let body = resp
-            .body_mut()
-            .with_config()
-            .limit(MAX_BODY_BYTES)
-            .read_to_vec()
+        let body = read_body(resp.body_mut(), MAX_BODY_BYTES)
             .map_err(|e| SourceError(format!("{url}: reading the response: {e}")))?;
         if status != 200 {
             let why = serde_json::from_slice::<ErrorJson>(&body)
@@ -101,6 +97,16 @@ impl HttpSource {
         }
         Ok((body, etag))
     }
+}
+
+/// Reads a whole body of at most `limit` bytes into a buffer sized from its
+/// `Content-Length` (a megabyte answer read into a growing vector is copied
+/// about twice over on the way).
+pub fn read_body(body: &mut ureq::Body, limit: u64) -> Result<Vec<u8>, ureq::Error> {
+    use std::io::Read;
+    let mut buf = Vec::with_capacity(body.content_length().unwrap_or(0).min(limit) as usize);
+    body.with_config().limit(limit).reader().read_to_end(&mut buf)?;
+    Ok(buf)
 }
 
 impl LandmarkSource for HttpSource {

@@ -1,9 +1,11 @@
 //! Load generator for `scripts/bench_serve.sh`: typical navigator queries (the
 //! nadir footprint of a 1024 x 768, 32 deg camera at a random place and height
-//! over the database, at the level that fits its ground resolution), made
-//! in-process against the store and over HTTP against a running `trn serve`
-//! (binary encoding, keep-alive, each client its own connection), both decoded
-//! into templates. Prints one JSON line per mode: throughput and latency percentiles.
+//! over the database, at the level that fits its ground resolution, as the
+//! navigator asks for it), made in-process against the store (SQLite, and the
+//! in-memory catalogue the server uses) and over HTTP against a running
+//! `trn serve` through the navigator's `HttpSource` (binary encoding,
+//! keep-alive, each client its own connection), all decoded into templates.
+//! Prints one JSON line per mode: throughput and latency percentiles.
 //!
 //! `bench_serve --db DB [--url http://127.0.0.1:8080] [--clients 4] [--seconds 10]`
 
@@ -13,9 +15,11 @@ use std::time::{Duration, Instant};
 
 use trn_camera::{CameraModel, CameraPose};
 use trn_geodesy::Geodetic;
-use trn_landmark::{wire, GeoBox};
+use trn_landmark::GeoBox;
 use trn_navigator::footprint::{footprint, FootprintParams};
+use trn_navigator::http_source::HttpSource;
 use trn_navigator::view::level_for;
+use trn_navigator::LandmarkSource;
 use trn_store::{BboxQuery, LandmarkDb};
 
 fn arg(args: &[String], name: &str) -> Option<String> {
@@ -129,29 +133,22 @@ fn main() {
         });
         report("in-process", clients, &st, wall);
     }
-    if let Some(url) = url.filter(|_| mode == "both" || mode == "http") {
-        let (st, wall) = run_clients(clients, seconds, qs, |_| {
-            let agent: ureq::Agent = ureq::Agent::config_builder().build().into();
-            let url = url.clone();
+    if mode == "both" || mode == "memory" {
+        // The server's hot path without HTTP: the whole database in memory.
+        let cat = Arc::new(db.load_catalogue(|_| {}).unwrap());
+        let (st, wall) = run_clients(clients, seconds, qs.clone(), |_| {
+            let cat = cat.clone();
             Box::new(move |b: &GeoBox, l: u8| {
-                let q = format!(
-                    "{url}/v1/templates?bbox={},{},{},{}&level={l}&limit=10000",
-                    b.min_lon_deg, b.min_lat_deg, b.max_lon_deg, b.max_lat_deg
-                );
-                let body = agent
-                    .get(&q)
-                    .header("Accept", wire::MEDIA_TYPE)
-                    .call()
-                    .unwrap()
-                    .body_mut()
-                    .with_config()
-                    .limit(1 << 30)
-                    .read_to_vec()
-                    .unwrap();
-                let list = wire::decode(&body).unwrap();
-                assert!(!list.truncated);
-                list.templates.len()
+                cat.query_templates(&BboxQuery::new(*b).with_levels(l..=l)).unwrap().len()
             })
+        });
+        report("in-process-memory", clients, &st, wall);
+    }
+    if let Some(url) = url.filter(|_| mode == "both" || mode == "http") {
+        // Exactly the navigator's client: one connection per source.
+        let (st, wall) = run_clients(clients, seconds, qs, |_| {
+            let source = HttpSource::connect(&url).unwrap();
+            Box::new(move |b: &GeoBox, l: u8| source.query(b, l).unwrap().len())
         });
         report("http", clients, &st, wall);
     }

@@ -1,5 +1,6 @@
 //! One opened version of the landmark database: a fixed pool of read-only
-//! connections (each with its cached prepared statements), what `/v1/info`
+//! connections (each with its cached prepared statements), the whole database
+//! in memory as a [`Catalogue`] when it fits the cache budget, what `/v1/info`
 //! says, and the identity that makes the ETag.
 //!
 //! All connections are opened up front: the file at the path may be replaced
@@ -8,11 +9,15 @@
 
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
+use std::time::Instant;
 
 use serde::Serialize;
 use tokio::sync::Semaphore;
+use tracing::info;
 use trn_landmark::GeoBox;
-use trn_store::{LandmarkDb, LevelInfo, StoreError};
+use trn_landmark::Template;
+use trn_navigator::source::{LandmarkSource, SourceError};
+use trn_store::{BboxQuery, Catalogue, LandmarkDb, LevelInfo, StoreError};
 use utoipa::ToSchema;
 
 use crate::error::{ApiError, ServerError};
@@ -35,6 +40,9 @@ pub struct Info {
     #[schema(value_type = Object)]
     pub metadata: serde_json::Value,
     pub file_size_bytes: u64,
+    /// Bytes of the in-memory catalogue (templates served from memory), or 0
+    /// when the database is larger than `--cache-mb` and queries read SQLite.
+    pub memory_bytes: u64,
 }
 
 /// One version of the database, shared by the requests that started on it.
@@ -42,6 +50,7 @@ pub struct Database {
     path: PathBuf,
     conns: Mutex<Vec<LandmarkDb>>,
     permits: Arc<Semaphore>,
+    catalogue: Option<Catalogue>,
     pub info: Info,
     /// (level, GSD) of every level, finest first.
     pub levels: Vec<(u8, f64)>,
@@ -60,8 +69,9 @@ fn fnv1a(bytes: &[u8], mut h: u64) -> u64 {
 }
 
 impl Database {
-    /// Opens `connections` connections to `path` (at least one).
-    pub fn open(path: &Path, connections: usize) -> Result<Self, ServerError> {
+    /// Opens `connections` connections to `path` (at least one), and reads the
+    /// whole database into memory if it takes at most `cache_bytes`.
+    pub fn open(path: &Path, connections: usize, cache_bytes: u64) -> Result<Self, ServerError> {
         let first = LandmarkDb::open(path)?;
         let levels_info = first.levels()?;
         let metadata = first.all_metadata()?;
@@ -84,6 +94,31 @@ impl Database {
         h = fnv1a(serde_json::to_string(&levels_info).unwrap_or_default().as_bytes(), h);
         h = fnv1a(&file_size_bytes.to_le_bytes(), h);
         let database_id = format!("{h:016x}");
+        let catalogue = if cache_bytes == 0 {
+            None
+        } else {
+            let need = first.catalogue_bytes()?;
+            if need <= cache_bytes {
+                let t0 = Instant::now();
+                let c = first.load_catalogue(|_| {})?;
+                info!(
+                    "{}: {} templates in memory, {:.0} MB, read in {:.2} s",
+                    path.display(),
+                    c.len(),
+                    c.memory_bytes() as f64 / 1e6,
+                    t0.elapsed().as_secs_f64()
+                );
+                Some(c)
+            } else {
+                info!(
+                    "{}: needs {:.0} MB in memory, more than the cache's {:.0} MB: queries read SQLite",
+                    path.display(),
+                    need as f64 / 1e6,
+                    cache_bytes as f64 / 1e6
+                );
+                None
+            }
+        };
         let mut conns = Vec::with_capacity(connections.max(1));
         for _ in 1..connections.max(1) {
             conns.push(first.reopen()?);
@@ -97,11 +132,13 @@ impl Database {
             levels: levels_info.clone(),
             metadata,
             file_size_bytes,
+            memory_bytes: catalogue.as_ref().map_or(0, |c| c.memory_bytes()),
         };
         Ok(Self {
             path: path.to_owned(),
             permits: Arc::new(Semaphore::new(conns.len())),
             conns: Mutex::new(conns),
+            catalogue,
             levels: levels_info.iter().map(|l| (l.level, l.gsd_m)).collect(),
             etag: format!("W/\"{database_id}\""),
             info,
@@ -112,12 +149,17 @@ impl Database {
         &self.path
     }
 
-    /// Runs `f` with a connection of this version on the blocking thread pool;
+    /// The whole database in memory, when it fits the cache.
+    pub fn catalogue(&self) -> Option<&Catalogue> {
+        self.catalogue.as_ref()
+    }
+
+    /// Runs `f` with this version's [`Store`] on the blocking thread pool;
     /// waits while all connections are busy.
     pub async fn run<T, F>(self: &Arc<Self>, f: F) -> Result<T, ApiError>
     where
         T: Send + 'static,
-        F: FnOnce(&LandmarkDb) -> Result<T, ApiError> + Send + 'static,
+        F: FnOnce(Store<'_>) -> Result<T, ApiError> + Send + 'static,
     {
         let permit =
             self.permits.clone().acquire_owned().await.map_err(|_| ApiError::internal("database closed"))?;
@@ -126,10 +168,42 @@ impl Database {
             let _permit = permit;
             let conn =
                 Checkout::take(&me).ok_or_else(|| ApiError::internal("no free database connection"))?;
-            f(conn.db())
+            f(Store { conn: conn.db(), catalogue: me.catalogue.as_ref() })
         })
         .await
         .map_err(|e| ApiError::internal(format!("database task failed: {e}")))?
+    }
+}
+
+/// What a request reads: a connection, and the catalogue when the database is in memory.
+#[derive(Clone, Copy)]
+pub struct Store<'a> {
+    pub conn: &'a LandmarkDb,
+    pub catalogue: Option<&'a Catalogue>,
+}
+
+impl Store<'_> {
+    /// The templates matching `query`, best first, from memory if there.
+    pub fn query_bbox(&self, query: &BboxQuery) -> Result<Vec<Template>, StoreError> {
+        match self.catalogue {
+            Some(c) => c.query_templates(query),
+            None => self.conn.query_bbox(query),
+        }
+    }
+}
+
+/// What the footprint and coverage queries see: the same templates either way.
+impl LandmarkSource for Store<'_> {
+    fn levels(&self) -> Result<Vec<LevelInfo>, SourceError> {
+        match self.catalogue {
+            Some(c) => Ok(c.levels().to_vec()),
+            None => LandmarkSource::levels(self.conn),
+        }
+    }
+
+    fn query(&self, bbox: &GeoBox, level: u8) -> Result<Vec<Template>, SourceError> {
+        self.query_bbox(&BboxQuery::new(*bbox).with_levels(level..=level))
+            .map_err(|e| SourceError(e.to_string()))
     }
 }
 

@@ -43,6 +43,9 @@ use tracing::{error, info, warn};
 pub use db::Database;
 pub use error::{ApiError, ServerError};
 
+/// Default of `--cache-mb`: a database up to this size is served from memory.
+pub const DEFAULT_CACHE_MB: u64 = 2048;
+
 /// What `trn serve` is asked to do.
 #[derive(Clone, Debug)]
 pub struct ServeOptions {
@@ -62,6 +65,9 @@ pub struct ServeOptions {
     pub watch_interval: Duration,
     /// Tokio worker threads (default: the number of cores).
     pub threads: Option<usize>,
+    /// Largest database (records and index, bytes) read whole into memory and
+    /// served from there; a larger one is queried in SQLite. 0: never.
+    pub cache_bytes: u64,
 }
 
 impl ServeOptions {
@@ -77,6 +83,7 @@ impl ServeOptions {
             watch: false,
             watch_interval: Duration::from_secs(1),
             threads: None,
+            cache_bytes: DEFAULT_CACHE_MB << 20,
         }
     }
 }
@@ -90,7 +97,7 @@ pub struct AppState {
 impl AppState {
     /// Opens the database (all connections).
     pub fn open(opts: ServeOptions) -> Result<Self, ServerError> {
-        let db = Database::open(&opts.db, opts.connections)?;
+        let db = Database::open(&opts.db, opts.connections, opts.cache_bytes)?;
         Ok(Self { db: ArcSwap::from_pointee(db), opts })
     }
 
@@ -98,9 +105,11 @@ impl AppState {
     /// version stays and the error is returned (and logged).
     pub async fn reload(self: &Arc<Self>) -> Result<(), ServerError> {
         let me = self.clone();
-        let opened = tokio::task::spawn_blocking(move || Database::open(&me.opts.db, me.opts.connections))
-            .await
-            .map_err(|e| ServerError::Other(format!("reload task failed: {e}")))?;
+        let opened = tokio::task::spawn_blocking(move || {
+            Database::open(&me.opts.db, me.opts.connections, me.opts.cache_bytes)
+        })
+        .await
+        .map_err(|e| ServerError::Other(format!("reload task failed: {e}")))?;
         match opened {
             Ok(db) => {
                 let old = self.db.swap(Arc::new(db));

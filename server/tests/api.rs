@@ -81,6 +81,11 @@ struct Fixture {
 }
 
 fn fixture() -> Fixture {
+    fixture_with(trn_server::DEFAULT_CACHE_MB << 20)
+}
+
+/// The fixture served from memory (`cache_bytes` > 0) or from SQLite (0).
+fn fixture_with(cache_bytes: u64) -> Fixture {
     let mut rng = Lcg(42);
     let mut templates = Vec::new();
     for (i, (lat0, lon0, s)) in CLUSTERS.iter().enumerate() {
@@ -102,6 +107,7 @@ fn fixture() -> Fixture {
     w.finish().unwrap();
     let mut opts = ServeOptions::new(path, "127.0.0.1:0".into());
     opts.max_body_bytes = 64 << 10;
+    opts.cache_bytes = cache_bytes;
     let app = router(Arc::new(AppState::open(opts).unwrap()));
     Fixture { _dir: dir, templates, app }
 }
@@ -178,8 +184,17 @@ fn next_up(x: f64) -> f64 {
 
 #[test]
 fn bbox_queries_equal_a_brute_force_scan() {
-    let f = fixture();
+    // From memory (the default) and from SQLite (a database over the cache).
+    for cache_bytes in [trn_server::DEFAULT_CACHE_MB << 20, 0] {
+        bbox_queries_equal_a_brute_force_scan_with(cache_bytes);
+    }
+}
+
+fn bbox_queries_equal_a_brute_force_scan_with(cache_bytes: u64) {
+    let f = fixture_with(cache_bytes);
     let rt = rt();
+    let memory = rt.block_on(call(&f.app, get("/v1/info"))).json()["memory_bytes"].as_u64().unwrap();
+    assert_eq!(memory > 0, cache_bytes > 0, "memory_bytes {memory} with a cache of {cache_bytes}");
     let mut rng = Lcg(7);
     let mut nonempty = 0;
     let mut truncated_seen = 0;
@@ -390,6 +405,15 @@ fn footprint_and_coverage_count_the_landmarks_in_view() {
         g["features"].as_array().unwrap().iter().map(|f| f["properties"]["kind"].as_str().unwrap()).collect();
     assert_eq!(kinds.iter().filter(|k| **k == "below_threshold").count(), 1);
     assert_eq!(kinds.iter().filter(|k| **k == "point").count(), pts.len());
+
+    // Served from SQLite instead of memory: the same answers, byte for byte.
+    let sqlite = fixture_with(0);
+    for (uri, req) in [("/v1/footprint", body.to_string()), ("/v1/coverage", plan.to_string())] {
+        let from_memory = rt.block_on(call(&f.app, post(uri, req.clone())));
+        let from_sqlite = rt.block_on(call(&sqlite.app, post(uri, req)));
+        assert_eq!(from_sqlite.status, StatusCode::OK, "{uri}");
+        assert!(from_memory.body == from_sqlite.body, "{uri}: memory and SQLite answers differ");
+    }
 }
 
 /// A bad request that must name what was wrong: (method, uri, body, status, words in the error).

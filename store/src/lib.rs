@@ -12,6 +12,7 @@
 //! Since GeoPackage fixes `PRAGMA user_version`, our [`SCHEMA_VERSION`] is stored in
 //! the `trn_metadata` table under the key `schema_version`.
 
+mod catalogue;
 mod error;
 pub mod gpkg;
 mod reader;
@@ -24,6 +25,7 @@ use std::path::PathBuf;
 
 use serde::Serialize;
 
+pub use catalogue::Catalogue;
 pub use error::{StoreError, StoreErrorKind};
 pub use reader::LandmarkDb;
 pub use trn_landmark::{GeoBox, Template};

@@ -121,3 +121,53 @@ fn create_refuses_existing_paths() {
     assert!(matches!(err.kind(), StoreErrorKind::Io(_)), "{err}");
     assert!(err.to_string().contains("no/such/dir/x.gpkg"), "{err}");
 }
+
+#[test]
+fn paths_with_uri_characters_open_as_plain_paths() {
+    // The file is opened through an SQLite URI (immutable=1): characters that
+    // mean something in a URI must still name the file.
+    let dir = tempfile::tempdir().unwrap();
+    for name in ["a b%20c?immutable=0#x.gpkg", "ünï&cödé;=.gpkg", "%", "file:x.gpkg"] {
+        let sub = dir.path().join(format!("d {name}"));
+        std::fs::create_dir(&sub).unwrap();
+        let mut templates = vec![synthetic_template(&mut Lcg::new(8), 0, 0.0, 0.0)];
+        let (db_path, _) = write_db(&sub, name, &mut templates);
+        let db = LandmarkDb::open(&db_path).unwrap_or_else(|e| panic!("{name}: {e}"));
+        assert_eq!(db.count().unwrap(), 1, "{name}");
+        assert_eq!(db.path(), db_path);
+    }
+    // A relative path, from the file's own directory.
+    let mut templates = vec![synthetic_template(&mut Lcg::new(9), 0, 0.0, 0.0)];
+    let (db_path, _) = write_db(dir.path(), "rel.gpkg", &mut templates);
+    let cwd = std::env::current_dir().unwrap();
+    let rel = pathdiff(&db_path, &cwd);
+    assert_eq!(LandmarkDb::open(&rel).unwrap().count().unwrap(), 1, "{}", rel.display());
+}
+
+#[test]
+fn an_open_database_keeps_reading_its_file_after_a_rename_over_the_path() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut old = vec![synthetic_template(&mut Lcg::new(10), 0, 0.0, 0.0)];
+    let (path, _) = write_db(dir.path(), "db.gpkg", &mut old);
+    let db = LandmarkDb::open(&path).unwrap();
+    let mut new: Vec<_> = (0..3).map(|i| synthetic_template(&mut Lcg::new(11 + i), 0, 0.0, 0.0)).collect();
+    let (next, _) = write_db(dir.path(), "next.gpkg", &mut new);
+    std::fs::rename(&next, &path).unwrap();
+    assert_eq!(db.count().unwrap(), 1);
+    assert_eq!(db.for_each_template(|_| Ok(())).map(|_| ()).ok(), Some(()));
+    assert_eq!(db.reopen().unwrap().count().unwrap(), 3);
+}
+
+/// `target` relative to `base` (both absolute), with `..` as needed.
+fn pathdiff(target: &Path, base: &Path) -> std::path::PathBuf {
+    let (t, b): (Vec<_>, Vec<_>) = (target.components().collect(), base.components().collect());
+    let common = t.iter().zip(&b).take_while(|(x, y)| x == y).count();
+    let mut out = std::path::PathBuf::new();
+    for _ in common..b.len() {
+        out.push("..");
+    }
+    for c in &t[common..] {
+        out.push(c);
+    }
+    out
+}

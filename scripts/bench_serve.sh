@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # Landmark server benchmark: typical navigator queries (nadir footprints of a
 # 1024 x 768, 32 deg camera at the level that fits, server/examples/bench_serve.rs)
-# on a database of >= 100k templates, made in-process against the store and over
-# HTTP against `trn serve` (binary encoding, keep-alive), same number of clients.
+# on a database of >= 100k templates, made in-process against the store (SQLite,
+# and the in-memory catalogue) and over HTTP against `trn serve` through the
+# navigator's HttpSource (binary encoding, keep-alive), same number of clients.
 # Usage: scripts/bench_serve.sh [CLIENTS] [SECONDS]   (default 4 clients, 10 s each)
 # The database: a 10000 x 10000 synthetic ortho at 1 m (as scripts/bench_build.sh)
 # built with --spacing 32 (~126k templates), in target/bench-data/serve.gpkg.
@@ -40,6 +41,9 @@ print("| path | clients | queries/s | templates/query | p50 ms | p90 ms | p99 ms
 print("|---|---:|---:|---:|---:|---:|---:|")
 for r in rows:
     print(f"| {r['mode']} | {r['clients']} | {r['queries_per_s']:.0f} | {r['templates_per_query']:.0f} | {r['p50_ms']:.2f} | {r['p90_ms']:.2f} | {r['p99_ms']:.2f} |")
-if len(rows) == 2:
-    print(f"HTTP throughput / in-process: {rows[1]['queries_per_s'] / rows[0]['queries_per_s']:.2f}")
+by = {r['mode']: r for r in rows}
+if 'http' in by:
+    for m in ('in-process', 'in-process-memory'):
+        if m in by:
+            print(f"HTTP throughput / {m}: {by['http']['queries_per_s'] / by[m]['queries_per_s']:.2f}")
 PY

@@ -538,10 +538,15 @@ struct ServeArgs {
 }
 
 #[derive(clap::Args)]
+#[command(group(clap::ArgGroup::new("source").required(true).args(["db", "server"])))]
 struct CoverageArgs {
-    /// Landmark database (from trn build).
+    /// Landmark database (from trn build); the report is computed here.
     #[arg(long)]
-    db: PathBuf,
+    db: Option<PathBuf>,
+    /// Landmark server (trn serve) instead of --db, e.g. http://127.0.0.1:8080: the server
+    /// computes the report (POST /v1/coverage) and lists the footprints for --png.
+    #[arg(long, value_name = "URL")]
+    server: Option<String>,
     /// Planned trajectory: the JSON body of POST /v1/coverage (camera, poses or waypoints + attitude).
     #[arg(long)]
     plan: PathBuf,
@@ -581,8 +586,14 @@ fn run_serve(a: ServeArgs) -> anyhow::Result<()> {
 }
 
 fn run_coverage(a: CoverageArgs) -> anyhow::Result<()> {
+    use trn_server::coverage::CoverageSource;
+    let source = match (&a.db, &a.server) {
+        (Some(db), None) => CoverageSource::Db(db),
+        (None, Some(url)) => CoverageSource::Server(url),
+        _ => anyhow::bail!("give either --db or --server"),
+    };
     let report = trn_server::coverage::run_cli(
-        &a.db,
+        source,
         &a.plan,
         a.geojson.as_deref(),
         a.png.as_deref().map(|p| (p, a.png_width)),

@@ -1,14 +1,19 @@
 //! End to end: the real `trn serve` under 32 concurrent clients, bad input, a
 //! database swapped in by rename + SIGHUP while clients run, graceful
-//! shutdown; `trn navigate --server` against `--db`; `trn coverage`.
+//! shutdown; three replicas behind a round-robin TCP balancer through a
+//! rolling reload; `trn navigate --server` against `--db`; `trn coverage`
+//! with `--db` and `--server`.
 
 mod common;
 
+use std::collections::BTreeSet;
 use std::io::{BufRead, BufReader};
+use std::net::{Shutdown, SocketAddr, TcpListener, TcpStream};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Stdio};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, OnceLock};
+use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use common::{nav_fixture, run, stderr, trn};
@@ -335,6 +340,269 @@ fn watch_reloads_a_database_renamed_over_the_path() {
     println!("--watch reloaded after {:.1} s", t0.elapsed().as_secs_f64());
 }
 
+/// A round-robin TCP (L4) load balancer, as HAProxy in TCP mode: each accepted
+/// connection goes to the next backend, and the bytes are copied both ways
+/// until either side closes.
+struct Balancer {
+    url: String,
+    stop: Arc<AtomicBool>,
+    /// Connections handed to each backend.
+    connections: Arc<Vec<AtomicUsize>>,
+    accept: Option<JoinHandle<()>>,
+}
+
+impl Balancer {
+    fn start(backends: Vec<SocketAddr>) -> Balancer {
+        let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+        let url = format!("http://{}", listener.local_addr().unwrap());
+        let stop = Arc::new(AtomicBool::new(false));
+        let connections: Arc<Vec<AtomicUsize>> =
+            Arc::new(backends.iter().map(|_| AtomicUsize::new(0)).collect());
+        let (st, counts) = (stop.clone(), connections.clone());
+        let accept = std::thread::spawn(move || {
+            for (n, client) in listener.incoming().enumerate() {
+                if st.load(Ordering::Relaxed) {
+                    break;
+                }
+                let Ok(client) = client else { continue };
+                let i = n % backends.len();
+                counts[i].fetch_add(1, Ordering::Relaxed);
+                // A backend that cannot be reached: the client's connection is
+                // dropped, and its request fails.
+                let Ok(backend) = TcpStream::connect(backends[i]) else { continue };
+                let (Ok(c2), Ok(b2)) = (client.try_clone(), backend.try_clone()) else { continue };
+                for (mut from, mut to) in [(client, b2), (backend, c2)] {
+                    let _ = from.set_nodelay(true);
+                    std::thread::spawn(move || {
+                        let _ = std::io::copy(&mut from, &mut to);
+                        let _ = to.shutdown(Shutdown::Write);
+                    });
+                }
+            }
+        });
+        Balancer { url, stop, connections, accept: Some(accept) }
+    }
+}
+
+impl Drop for Balancer {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+        // Wake the accept loop.
+        let _ = TcpStream::connect(self.url.trim_start_matches("http://"));
+        if let Some(t) = self.accept.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+/// What the store answers for one query: the templates (the first 200) and
+/// whether more match.
+type Answers = Vec<(Vec<Template>, bool)>;
+
+#[test]
+fn replicas_behind_a_balancer_reload_one_after_another_without_a_failed_request() {
+    let t_start = Instant::now();
+    let dir = tempfile::tempdir().unwrap();
+    let db_path = dir.path().join("map.gpkg");
+    write_db(&db_path, 3000, 11);
+    // Three replicas over the same file, and the balancer in front.
+    let replicas: Vec<Server> = (0..3)
+        .map(|i| {
+            let log = dir.path().join(format!("replica{i}.log"));
+            Server::start(&db_path, log, &["--threads", "1", "--connections", "2"])
+        })
+        .collect();
+    let a = agent();
+    let old_id = info(&a, &replicas[0].url)["database_id"].as_str().unwrap().to_owned();
+    for r in &replicas {
+        assert_eq!(info(&a, &r.url)["database_id"], old_id.as_str(), "replicas of one file differ");
+    }
+    let balancer = Balancer::start(
+        replicas.iter().map(|r| r.url.trim_start_matches("http://").parse().unwrap()).collect(),
+    );
+
+    // Random boxes, some at one level; the expected answers from the store.
+    let mut seed = 99u64;
+    let mut next = || {
+        seed = seed.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
+        (seed >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let queries: Vec<(GeoBox, Option<u8>)> = (0..24)
+        .map(|i| {
+            let (lon, lat, r) = (-105.6 + 0.2 * next(), 39.9 + 0.2 * next(), 0.005 + 0.03 * next());
+            (GeoBox::new(lon - r, lat - r, lon + r, lat + r), [None, Some(0), Some(1)][i % 3])
+        })
+        .collect();
+    let answers = |db: &LandmarkDb| -> Answers {
+        queries
+            .iter()
+            .map(|(b, l)| {
+                let q = BboxQuery { bbox: *b, levels: l.map(|l| l..=l), limit: Some(201) };
+                let mut t = db.query_bbox(&q).unwrap();
+                let truncated = t.len() > 200;
+                t.truncate(200);
+                (t, truncated)
+            })
+            .collect()
+    };
+    let old = Arc::new(answers(&LandmarkDb::open(&db_path).unwrap()));
+    assert!(old.iter().all(|(t, _)| !t.is_empty()) && old.iter().any(|(_, tr)| *tr));
+    let new: Arc<OnceLock<Answers>> = Arc::new(OnceLock::new());
+    let old_etag = format!("W/\"{old_id}-b\"");
+
+    // 8 clients through the balancer, binary answers, each checked against the
+    // version its ETag names; 4 keep one connection, 4 open one per request.
+    let stop = Arc::new(AtomicBool::new(false));
+    let failures = Arc::new(Mutex::new(Vec::<String>::new()));
+    let new_etags = Arc::new(Mutex::new(BTreeSet::<String>::new()));
+    let (n_old, n_new) = (Arc::new(AtomicUsize::new(0)), Arc::new(AtomicUsize::new(0)));
+    let clients: Vec<_> = (0..8)
+        .map(|c| {
+            let (lb, stop, failures, new_etags) =
+                (balancer.url.clone(), stop.clone(), failures.clone(), new_etags.clone());
+            let (queries, old, new, old_etag) = (queries.clone(), old.clone(), new.clone(), old_etag.clone());
+            let (n_old, n_new) = (n_old.clone(), n_new.clone());
+            std::thread::spawn(move || {
+                let keep_alive = c < 4;
+                let mut kept = agent();
+                let mut k = c * 5;
+                while !stop.load(Ordering::Relaxed) {
+                    k += 7;
+                    let i = k % queries.len();
+                    let (b, l) = queries[i];
+                    let url = format!(
+                        "{lb}/v1/templates?bbox={},{},{},{}&limit=200{}",
+                        b.min_lon_deg,
+                        b.min_lat_deg,
+                        b.max_lon_deg,
+                        b.max_lat_deg,
+                        l.map(|l| format!("&level={l}")).unwrap_or_default()
+                    );
+                    if !keep_alive {
+                        kept = agent();
+                    }
+                    let fail = |why: String| failures.lock().unwrap().push(format!("client {c}: {url}: {why}"));
+                    let mut r = match kept.get(&url).header("Accept", wire::MEDIA_TYPE).call() {
+                        Ok(r) => r,
+                        Err(e) => {
+                            fail(e.to_string());
+                            continue;
+                        }
+                    };
+                    let etag = r.headers().get("etag").and_then(|v| v.to_str().ok()).unwrap_or("").to_owned();
+                    let body = match r.body_mut().with_config().limit(1 << 30).read_to_vec() {
+                        Ok(b) => b,
+                        Err(e) => {
+                            fail(format!("reading the body: {e}"));
+                            continue;
+                        }
+                    };
+                    if r.status() != 200 {
+                        fail(format!("HTTP {}: {}", r.status(), String::from_utf8_lossy(&body)));
+                        continue;
+                    }
+                    let list = match wire::decode(&body) {
+                        Ok(l) => l,
+                        Err(e) => {
+                            fail(format!("decoding: {e}"));
+                            continue;
+                        }
+                    };
+                    let (version, expected) = if etag == old_etag {
+                        n_old.fetch_add(1, Ordering::Relaxed);
+                        ("old", &old[i])
+                    } else if let Some(new) = new.get() {
+                        n_new.fetch_add(1, Ordering::Relaxed);
+                        new_etags.lock().unwrap().insert(etag.clone());
+                        ("new", &new[i])
+                    } else {
+                        fail(format!("ETag {etag} before the new version exists"));
+                        continue;
+                    };
+                    if (&list.templates, list.truncated) != (&expected.0, expected.1) {
+                        fail(format!(
+                            "{} templates (truncated {}) under ETag {etag}, the {version} version has {} ({})",
+                            list.templates.len(),
+                            list.truncated,
+                            expected.0.len(),
+                            expected.1
+                        ));
+                    }
+                }
+            })
+        })
+        .collect();
+    std::thread::sleep(Duration::from_millis(500));
+
+    // A new version written next to the live file, renamed over it, then a
+    // rolling reload: SIGHUP to one replica at a time, each serving the new
+    // version before the next is told.
+    let tmp = dir.path().join("map.gpkg.new");
+    write_db(&tmp, 2500, 12);
+    new.set(answers(&LandmarkDb::open(&tmp).unwrap())).unwrap();
+    std::fs::rename(&tmp, &db_path).unwrap();
+    let t_reload = Instant::now();
+    let mut new_id = None;
+    for r in &replicas {
+        r.signal(libc::SIGHUP);
+        let t0 = Instant::now();
+        let id = loop {
+            let id = info(&a, &r.url)["database_id"].as_str().unwrap().to_owned();
+            if id != old_id {
+                break id;
+            }
+            assert!(t0.elapsed() < Duration::from_secs(10), "no reload; log:\n{}", r.log());
+            std::thread::sleep(Duration::from_millis(20));
+        };
+        assert_eq!(new_id.get_or_insert_with(|| id.clone()), &id, "replicas of one file differ");
+        std::thread::sleep(Duration::from_millis(250));
+    }
+    let reload_s = t_reload.elapsed().as_secs_f64();
+    std::thread::sleep(Duration::from_millis(250));
+    stop.store(true, Ordering::Relaxed);
+    for c in clients {
+        c.join().expect("a client panicked");
+    }
+
+    let failures = failures.lock().unwrap();
+    assert!(
+        failures.is_empty(),
+        "{} failed requests, the first: {:#?}",
+        failures.len(),
+        &failures[..failures.len().min(5)]
+    );
+    let (n_old, n_new) = (n_old.load(Ordering::Relaxed), n_new.load(Ordering::Relaxed));
+    assert!(n_old > 0 && n_new > 0, "{n_old} answers from the old version, {n_new} from the new");
+    let new_etag = format!("W/\"{}-b\"", new_id.unwrap());
+    assert_eq!(*new_etags.lock().unwrap(), [new_etag.clone()].into_iter().collect());
+    // Every replica answers with the new version and its ETag.
+    let new = new.get().unwrap();
+    for r in &replicas {
+        let (b, l) = queries[0];
+        let url = format!(
+            "{}/v1/templates?bbox={},{},{},{}&limit=200{}",
+            r.url,
+            b.min_lon_deg,
+            b.min_lat_deg,
+            b.max_lon_deg,
+            b.max_lat_deg,
+            l.map(|l| format!("&level={l}")).unwrap_or_default()
+        );
+        let mut resp = a.get(&url).header("Accept", wire::MEDIA_TYPE).call().unwrap();
+        assert_eq!(resp.headers().get("etag").unwrap().to_str().unwrap(), new_etag);
+        let body = resp.body_mut().with_config().limit(1 << 30).read_to_vec().unwrap();
+        assert_eq!(wire::decode(&body).unwrap().templates, new[0].0);
+    }
+    let per_replica: Vec<usize> = balancer.connections.iter().map(|n| n.load(Ordering::Relaxed)).collect();
+    assert!(per_replica.iter().all(|&n| n > 0), "connections per replica: {per_replica:?}");
+    println!(
+        "{} answers through the balancer ({n_old} old, {n_new} new), connections per replica {per_replica:?}, \
+         rolling reload {reload_s:.2} s, test {:.1} s",
+        n_old + n_new,
+        t_start.elapsed().as_secs_f64()
+    );
+}
+
 #[test]
 fn serve_names_bad_options() {
     let dir = tempfile::tempdir().unwrap();
@@ -352,6 +620,28 @@ fn serve_names_bad_options() {
     let o = run(&["navigate", "--db", "x", "--server", "http://y", "--flight", "f", "--out", "o"]);
     assert!(!o.status.success());
     assert!(stderr(&o).contains("--server"), "{}", stderr(&o));
+
+    // trn coverage: exactly one of --db and --server; a server URL that is
+    // not http://, or where nothing listens, is named.
+    let plan = dir.path().join("plan.json");
+    std::fs::write(&plan, "{}").unwrap();
+    let plan = plan.to_str().unwrap();
+    let o = run(&["coverage", "--db", db.to_str().unwrap(), "--server", "http://y", "--plan", plan]);
+    assert!(!o.status.success());
+    assert!(stderr(&o).contains("--db") && stderr(&o).contains("--server"), "{}", stderr(&o));
+    let o = run(&["coverage", "--plan", plan]);
+    assert!(!o.status.success());
+    assert!(stderr(&o).contains("--db") && stderr(&o).contains("--server"), "{}", stderr(&o));
+    let o = run(&["coverage", "--server", "ftp://example.org", "--plan", plan]);
+    assert!(!o.status.success());
+    assert!(stderr(&o).contains("ftp://example.org"), "{}", stderr(&o));
+    let closed = {
+        let l = TcpListener::bind("127.0.0.1:0").unwrap();
+        format!("http://{}", l.local_addr().unwrap())
+    };
+    let o = run(&["coverage", "--server", &closed, "--plan", plan]);
+    assert!(!o.status.success());
+    assert!(stderr(&o).contains(&format!("{closed}/v1/coverage: no answer")), "{}", stderr(&o));
 }
 
 #[test]
@@ -426,10 +716,44 @@ fn navigate_through_the_server_gives_the_same_poses_and_coverage_maps_them() {
     assert_eq!(report["stretches"].as_array().unwrap().len(), 0);
     let g: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&geojson).unwrap()).unwrap();
     assert_eq!(g["type"], "FeatureCollection");
-    assert!(image::open(&png).unwrap().width() == 1024);
+    let map = image::open(&png).unwrap().to_rgb8();
+    assert_eq!(map.width(), 1024);
+    assert!(map.pixels().any(|p| p[0] == p[1] && p[1] == p[2] && p[0] < 255), "no footprint drawn");
     // The server's answer is the same report.
     let body = std::fs::read_to_string(&plan).unwrap();
     let (s, answer) = post(&agent(), &format!("{}/v1/coverage", server.url), &body);
     assert_eq!(s, 200, "{}", String::from_utf8_lossy(&answer));
     assert_eq!(serde_json::from_slice::<serde_json::Value>(&answer).unwrap(), report);
+
+    // trn coverage --server: the same report, GeoJSON and map, byte for byte.
+    let (geojson2, png2) = (root.join("cov-server.geojson"), root.join("cov-server.png"));
+    let o2 = run(&[
+        "coverage",
+        "--server",
+        &server.url,
+        "--plan",
+        plan.to_str().unwrap(),
+        "--geojson",
+        geojson2.to_str().unwrap(),
+        "--png",
+        png2.to_str().unwrap(),
+    ]);
+    assert!(o2.status.success(), "coverage --server failed: {}", stderr(&o2));
+    assert_eq!(String::from_utf8_lossy(&o2.stdout), String::from_utf8_lossy(&o.stdout));
+    assert!(std::fs::read(&geojson).unwrap() == std::fs::read(&geojson2).unwrap(), "GeoJSON differs");
+    assert!(std::fs::read(&png).unwrap() == std::fs::read(&png2).unwrap(), "PNG differs");
+    // A plan the server refuses: its message, naming the URL and the field.
+    let bad = root.join("bad-plan.json");
+    std::fs::write(
+        &bad,
+        format!(
+            r#"{{"camera": {camera}, "poses": [{{"lat_deg": 91, "lon_deg": 0, "h_m": 1000, "q_ecef_cam": [1, 0, 0, 0]}}]}}"#
+        ),
+    )
+    .unwrap();
+    let o = run(&["coverage", "--server", &server.url, "--plan", bad.to_str().unwrap()]);
+    assert!(!o.status.success());
+    let e = stderr(&o);
+    assert!(e.contains(&format!("{}/v1/coverage: HTTP 422", server.url)), "{e}");
+    assert!(e.contains("poses[0]: lat_deg 91 is not in [-90, 90]"), "{e}");
 }

@@ -46,20 +46,21 @@ impl GeoBox {
 
     /// Splits an antimeridian-crossing box into two ordinary boxes.
     pub fn split_antimeridian(&self) -> Vec<GeoBox> {
-        if self.crosses_antimeridian() {
-            vec![
-                GeoBox::new(self.min_lon_deg, self.min_lat_deg, 180.0, self.max_lat_deg),
-                GeoBox::new(-180.0, self.min_lat_deg, self.max_lon_deg, self.max_lat_deg),
-            ]
-        } else {
-            vec![*self]
-        }
+        self.halves().collect()
+    }
+
+    /// [`GeoBox::split_antimeridian`] without allocating (hot in queries).
+    fn halves(&self) -> impl Iterator<Item = GeoBox> {
+        let crosses = self.crosses_antimeridian();
+        let first = if crosses { GeoBox { max_lon_deg: 180.0, ..*self } } else { *self };
+        let second = crosses.then_some(GeoBox { min_lon_deg: -180.0, ..*self });
+        std::iter::once(first).chain(second)
     }
 
     /// Closed-interval intersection test, antimeridian aware on both sides.
     pub fn intersects(&self, other: &GeoBox) -> bool {
-        self.split_antimeridian().iter().any(|a| {
-            other.split_antimeridian().iter().any(|b| {
+        self.halves().any(|a| {
+            other.halves().any(|b| {
                 a.min_lon_deg <= b.max_lon_deg
                     && b.min_lon_deg <= a.max_lon_deg
                     && a.min_lat_deg <= b.max_lat_deg
@@ -79,7 +80,7 @@ impl GeoBox {
     }
 
     pub fn contains(&self, lon_deg: f64, lat_deg: f64) -> bool {
-        self.split_antimeridian().iter().any(|b| {
+        self.halves().any(|b| {
             lon_deg >= b.min_lon_deg
                 && lon_deg <= b.max_lon_deg
                 && lat_deg >= b.min_lat_deg

@@ -26,6 +26,8 @@ pub struct HttpSource {
     agent: ureq::Agent,
     base: String,
     levels: Vec<LevelInfo>,
+    /// The last answer's bytes: the buffer is kept for the next.
+    body: std::sync::Mutex<Vec<u8>>,
 }
 
 #[derive(Deserialize)]
@@ -54,12 +56,16 @@ impl HttpSource {
         if !base.starts_with("http://") {
             return Err(SourceError(format!("{base_url}: the landmark server URL must start with http://")));
         }
-        let agent: ureq::Agent = ureq::Agent::config_builder()
+        let config = ureq::Agent::config_builder()
             .timeout_global(Some(Duration::from_secs(60)))
             .http_status_as_error(false)
-            .build()
-            .into();
-        let mut me = Self { agent, base, levels: Vec::new() };
+            .build();
+        let agent = ureq::Agent::with_parts(
+            config,
+            ureq::unversioned::transport::DefaultConnector::new(),
+            OnceResolver::new(&base)?,
+        );
+        let mut me = Self { agent, base, levels: Vec::new(), body: Default::default() };
         let (body, _) = me.get("/v1/info", "application/json")?;
         let info: InfoJson = serde_json::from_slice(&body)
             .map_err(|e| SourceError(format!("{}/v1/info: not the expected JSON: {e}", me.base)))?;
@@ -78,6 +84,18 @@ impl HttpSource {
     /// GET `path_and_query`; the body and ETag of a 200, else an error with the
     /// server's message.
     fn get(&self, path_and_query: &str, accept: &str) -> Result<(Vec<u8>, Option<String>), SourceError> {
+        let mut body = Vec::new();
+        let etag = self.get_into(path_and_query, accept, &mut body)?;
+        Ok((body, etag))
+    }
+
+    /// [`HttpSource::get`] into `body` (cleared first), whose memory is reused.
+    fn get_into(
+        &self,
+        path_and_query: &str,
+        accept: &str,
+        body: &mut Vec<u8>,
+    ) -> Result<Option<String>, SourceError> {
         let url = format!("{}{path_and_query}", self.base);
         let mut resp = self
             .agent
@@ -87,26 +105,71 @@ impl HttpSource {
             .map_err(|e| SourceError(format!("{url}: {e}")))?;
         let status = resp.status();
         let etag = resp.headers().get("etag").and_then(|v| v.to_str().ok()).map(str::to_owned);
-        let body = read_body(resp.body_mut(), MAX_BODY_BYTES)
+        read_body_into(resp.body_mut(), MAX_BODY_BYTES, body)
             .map_err(|e| SourceError(format!("{url}: reading the response: {e}")))?;
         if status != 200 {
-            let why = serde_json::from_slice::<ErrorJson>(&body)
+            let why = serde_json::from_slice::<ErrorJson>(body)
                 .map(|e| e.error)
-                .unwrap_or_else(|_| String::from_utf8_lossy(&body).chars().take(200).collect());
+                .unwrap_or_else(|_| String::from_utf8_lossy(body).chars().take(200).collect());
             return Err(SourceError(format!("{url}: HTTP {status}: {why}")));
         }
-        Ok((body, etag))
+        Ok(etag)
     }
 }
 
-/// Reads a whole body of at most `limit` bytes into a buffer sized from its
-/// `Content-Length` (a megabyte answer read into a growing vector is copied
-/// about twice over on the way).
-pub fn read_body(body: &mut ureq::Body, limit: u64) -> Result<Vec<u8>, ureq::Error> {
+/// The server's addresses, looked up once at connect. ureq's own resolver
+/// looks the host up before every request, and with a timeout set does it on a
+/// new thread: a thread per query.
+#[derive(Debug)]
+struct OnceResolver {
+    addrs: Vec<std::net::SocketAddr>,
+}
+
+impl OnceResolver {
+    fn new(base: &str) -> Result<Self, SourceError> {
+        use std::net::ToSocketAddrs;
+        let uri: ureq::http::Uri =
+            base.parse().map_err(|e| SourceError(format!("{base}: not a URL: {e}")))?;
+        let host = uri.host().ok_or_else(|| SourceError(format!("{base}: no host in the URL")))?;
+        let host = host.trim_start_matches('[').trim_end_matches(']');
+        let port = uri.port_u16().unwrap_or(80);
+        let addrs: Vec<_> = (host, port)
+            .to_socket_addrs()
+            .map_err(|e| SourceError(format!("{base}: cannot resolve {host}: {e}")))?
+            .collect();
+        if addrs.is_empty() {
+            return Err(SourceError(format!("{base}: {host} has no address")));
+        }
+        Ok(Self { addrs })
+    }
+}
+
+impl ureq::unversioned::resolver::Resolver for OnceResolver {
+    fn resolve(
+        &self,
+        _uri: &ureq::http::Uri,
+        _config: &ureq::config::Config,
+        _timeout: ureq::unversioned::transport::NextTimeout,
+    ) -> Result<ureq::unversioned::resolver::ResolvedSocketAddrs, ureq::Error> {
+        let mut out = self.empty();
+        // ureq holds at most 16.
+        for a in self.addrs.iter().take(16) {
+            out.push(*a);
+        }
+        Ok(out)
+    }
+}
+
+/// Reads a whole body of at most `limit` bytes into `buf` (cleared first),
+/// reserved from its `Content-Length`: a megabyte answer read into a growing
+/// vector is copied about twice over on the way, and a new one each time
+/// costs the allocator's page faults.
+pub fn read_body_into(body: &mut ureq::Body, limit: u64, buf: &mut Vec<u8>) -> Result<(), ureq::Error> {
     use std::io::Read;
-    let mut buf = Vec::with_capacity(body.content_length().unwrap_or(0).min(limit) as usize);
-    body.with_config().limit(limit).reader().read_to_end(&mut buf)?;
-    Ok(buf)
+    buf.clear();
+    buf.reserve(body.content_length().unwrap_or(0).min(limit) as usize);
+    body.with_config().limit(limit).reader().read_to_end(buf)?;
+    Ok(())
 }
 
 impl LandmarkSource for HttpSource {
@@ -125,6 +188,7 @@ impl LandmarkSource for HttpSource {
         );
         let mut out = Vec::new();
         let mut first_etag = None;
+        let mut body = self.body.lock().unwrap_or_else(|p| p.into_inner());
         loop {
             // `{}` prints the shortest decimal that parses back to the same f64.
             let path = format!(
@@ -135,7 +199,7 @@ impl LandmarkSource for HttpSource {
                 b.max_lat_deg,
                 out.len()
             );
-            let (body, etag) = self.get(&path, wire::MEDIA_TYPE)?;
+            let etag = self.get_into(&path, wire::MEDIA_TYPE, &mut body)?;
             // Pages from two database versions (a reload in between) do not
             // make one list: start again.
             if out.is_empty() {

@@ -2,7 +2,9 @@
 //! (`POST /v1/footprint`), and how many along a planned trajectory
 //! (`POST /v1/coverage`, `trn coverage`), with the navigator's own selection
 //! ([`trn_navigator::view`]: footprint with horizon walking and angle filter,
-//! level fit, projection into the image).
+//! level fit, projection into the image); the report as GeoJSON and as a map.
+//! `trn coverage` computes the report here ([`run_cli`] with a database) or
+//! asks a running server for it (with a URL, through [`crate::client`]).
 
 use std::path::Path;
 
@@ -293,7 +295,7 @@ pub struct CoverageRequest {
 }
 
 /// One trajectory point's coverage.
-#[derive(Clone, Debug, Serialize, ToSchema)]
+#[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
 pub struct CoveragePoint {
     pub index: usize,
     pub lat_deg: f64,
@@ -311,7 +313,7 @@ pub struct CoveragePoint {
 }
 
 /// Consecutive points below the threshold.
-#[derive(Clone, Debug, Serialize, ToSchema)]
+#[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
 pub struct Stretch {
     pub start_index: usize,
     pub end_index: usize,
@@ -321,7 +323,7 @@ pub struct Stretch {
 }
 
 /// `POST /v1/coverage` answer.
-#[derive(Clone, Debug, Serialize, ToSchema)]
+#[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
 pub struct CoverageReport {
     pub threshold: usize,
     pub points: Vec<CoveragePoint>,
@@ -537,11 +539,40 @@ pub fn to_geojson(r: &CoverageReport) -> serde_json::Value {
     json!({"type": "FeatureCollection", "features": features})
 }
 
+/// What the map needs of a template: its level and footprint (the
+/// `GET /v1/templates` JSON listing has both, under these names).
+#[derive(Clone, Copy, Debug, PartialEq, Deserialize)]
+pub struct TemplateBox {
+    pub level: u8,
+    pub footprint: GeoBox,
+}
+
+impl From<&Template> for TemplateBox {
+    fn from(t: &Template) -> Self {
+        Self { level: t.level, footprint: t.footprint }
+    }
+}
+
+/// The area whose templates the map of `report` draws: the box around the
+/// points' footprint boxes, clamped to the globe (a valid `bbox` for the
+/// server; no footprint lies beyond). `None` when no point sees the ground.
+pub fn map_area(report: &CoverageReport) -> Option<GeoBox> {
+    let b = GeoBox::around(
+        report
+            .points
+            .iter()
+            .filter_map(|p| p.bbox)
+            .flat_map(|b| [(b.min_lon_deg, b.min_lat_deg), (b.max_lon_deg, b.max_lat_deg)]),
+    )?;
+    let (lon, lat) = (|x: f64| x.clamp(-180.0, 180.0), |x: f64| x.clamp(-90.0, 90.0));
+    Some(GeoBox::new(lon(b.min_lon_deg), lat(b.min_lat_deg), lon(b.max_lon_deg), lat(b.max_lat_deg)))
+}
+
 /// Draws the trajectory over the landmark footprints (PNG, north up, longitude
 /// scaled by cos(latitude)): footprints in grey (darker for finer levels),
 /// points green at or above the threshold and red below, joined by a line.
 pub fn render_map(
-    templates: &[Template],
+    templates: &[TemplateBox],
     report: &CoverageReport,
     path: &Path,
     width_px: u32,
@@ -566,7 +597,7 @@ pub fn render_map(
     let mut img = image::RgbImage::from_pixel(w, h, image::Rgb([255, 255, 255]));
     let to_px = |lon: f64, lat: f64| ((lon - lon0) / span_lon * w as f64, (lat1 - lat) / span_lat * h as f64);
     let max_level = templates.iter().map(|t| t.level).max().unwrap_or(0).max(1) as f64;
-    let mut sorted: Vec<&Template> = templates.iter().collect();
+    let mut sorted: Vec<&TemplateBox> = templates.iter().collect();
     sorted.sort_by_key(|t| std::cmp::Reverse(t.level));
     for t in sorted {
         let f = &t.footprint;
@@ -615,36 +646,72 @@ pub fn render_map(
     img.save(path).map_err(|e| format!("{}: {e}", path.display()))
 }
 
+/// Where `trn coverage` gets the report and the template footprints.
+#[derive(Clone, Copy, Debug)]
+pub enum CoverageSource<'a> {
+    /// A landmark database file: the report is computed here.
+    Db(&'a Path),
+    /// A running `trn serve` (its base URL, `http://host:port`): the server
+    /// computes the report (`POST /v1/coverage`, one round trip) and lists the
+    /// footprints for the map (`GET /v1/templates`).
+    Server(&'a str),
+}
+
 /// `trn coverage`: the report for the plan in `plan` (a [`CoverageRequest`] as
-/// JSON) against the database at `db`, optionally written as GeoJSON and drawn as a PNG map.
+/// JSON) from `source`, optionally written as GeoJSON and drawn as a PNG map.
+/// Both sources give the same report, GeoJSON and map.
 pub fn run_cli(
-    db: &Path,
+    source: CoverageSource,
     plan: &Path,
     geojson: Option<&Path>,
     png: Option<(&Path, u32)>,
 ) -> Result<CoverageReport, crate::ServerError> {
     use crate::ServerError;
     let file_err = |path: &Path, reason: String| ServerError::File { path: path.into(), reason };
-    let text = std::fs::read_to_string(plan).map_err(|e| file_err(plan, e.to_string()))?;
-    let req: CoverageRequest =
-        serde_json::from_str(&text).map_err(|e| file_err(plan, format!("not a coverage plan: {e}")))?;
-    let conn = trn_store::LandmarkDb::open(db)?;
-    let levels: Vec<(u8, f64)> = conn.levels()?.iter().map(|l| (l.level, l.gsd_m)).collect();
-    let report = coverage_query(&conn, &levels, &req).map_err(|e| file_err(plan, e.message))?;
+    let read_plan = || std::fs::read(plan).map_err(|e| file_err(plan, e.to_string()));
+    match source {
+        CoverageSource::Db(db) => {
+            let req: CoverageRequest = serde_json::from_slice(&read_plan()?)
+                .map_err(|e| file_err(plan, format!("not a coverage plan: {e}")))?;
+            let conn = trn_store::LandmarkDb::open(db)?;
+            let levels: Vec<(u8, f64)> = conn.levels()?.iter().map(|l| (l.level, l.gsd_m)).collect();
+            let report = coverage_query(&conn, &levels, &req).map_err(|e| file_err(plan, e.message))?;
+            write_outputs(&report, geojson, png, |area| {
+                let templates = conn.query_bbox(&trn_store::BboxQuery::new(*area))?;
+                Ok(templates.iter().map(TemplateBox::from).collect())
+            })?;
+            Ok(report)
+        }
+        CoverageSource::Server(url) => {
+            let client = crate::client::Client::new(url)?;
+            let report = client.coverage(&read_plan()?)?;
+            write_outputs(&report, geojson, png, |area| client.template_boxes(area))?;
+            Ok(report)
+        }
+    }
+}
+
+/// Writes the GeoJSON and the map asked for; `templates_in` lists the
+/// templates meeting an area (all levels).
+fn write_outputs(
+    report: &CoverageReport,
+    geojson: Option<&Path>,
+    png: Option<(&Path, u32)>,
+    templates_in: impl FnOnce(&GeoBox) -> Result<Vec<TemplateBox>, crate::ServerError>,
+) -> Result<(), crate::ServerError> {
+    use crate::ServerError;
+    let file_err = |path: &Path, reason: String| ServerError::File { path: path.into(), reason };
     if let Some(path) = geojson {
         let text =
-            serde_json::to_string_pretty(&to_geojson(&report)).map_err(|e| file_err(path, e.to_string()))?;
+            serde_json::to_string_pretty(&to_geojson(report)).map_err(|e| file_err(path, e.to_string()))?;
         std::fs::write(path, text).map_err(|e| file_err(path, e.to_string()))?;
     }
     if let Some((path, width)) = png {
-        let boxes: Vec<GeoBox> = report.points.iter().filter_map(|p| p.bbox).collect();
-        let mut templates = Vec::new();
-        if let Some(area) = GeoBox::around(
-            boxes.iter().flat_map(|b| [(b.min_lon_deg, b.min_lat_deg), (b.max_lon_deg, b.max_lat_deg)]),
-        ) {
-            templates = conn.query_bbox(&trn_store::BboxQuery::new(area))?;
-        }
-        render_map(&templates, &report, path, width).map_err(|e| file_err(path, e))?;
+        let templates = match map_area(report) {
+            Some(area) => templates_in(&area)?,
+            None => Vec::new(),
+        };
+        render_map(&templates, report, path, width).map_err(|e| file_err(path, e))?;
     }
-    Ok(report)
+    Ok(())
 }

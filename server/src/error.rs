@@ -1,5 +1,6 @@
 //! The server's errors: [`ServerError`] for what stops `trn serve` (it cannot
-//! open the database, bind the address), [`ApiError`] for one request's answer.
+//! open the database, bind the address) or `trn coverage` (or a server it asks),
+//! [`ApiError`] for one request's answer.
 
 use std::path::PathBuf;
 
@@ -17,6 +18,9 @@ pub enum ServerError {
     File { path: PathBuf, reason: String },
     #[error("--listen {addr}: {reason}")]
     Listen { addr: String, reason: String },
+    /// A landmark server asked by `trn coverage --server` (the URL asked).
+    #[error("{url}: {reason}")]
+    Remote { url: String, reason: String },
     #[error("{0}")]
     Other(String),
 }

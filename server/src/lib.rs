@@ -13,11 +13,14 @@
 //! Database queries run on tokio's blocking pool, one pooled connection each.
 //! Every bad input is answered with a 4xx and `{"error": "..."}` naming the
 //! parameter; see `docs/SERVER.md` for the API and the binary encoding.
+//! [`coverage::run_cli`] is `trn coverage`, over a database file or, through
+//! [`client`], a running server.
 
 // `!(x <= y)` is how these crates reject NaN along with out-of-range values.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 pub mod api;
+pub mod client;
 pub mod coverage;
 pub mod db;
 pub mod error;
@@ -232,6 +235,13 @@ async fn serve_async(opts: ServeOptions, on_ready: impl FnOnce(SocketAddr)) -> R
     info!("listening on http://{addr}");
     on_ready(addr);
     spawn_reloaders(&state)?;
+    // No Nagle: the last partial segment of an answer goes out at once
+    // instead of waiting for the client's (possibly delayed) ACK.
+    let listener = axum::serve::ListenerExt::tap_io(listener, |tcp| {
+        if let Err(e) = tcp.set_nodelay(true) {
+            warn!("TCP_NODELAY on a new connection: {e}");
+        }
+    });
     axum::serve(listener, router(state))
         .with_graceful_shutdown(shutdown_signal())
         .await

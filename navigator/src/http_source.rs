@@ -117,6 +117,36 @@ impl HttpSource {
     }
 }
 
+/// One page of a listing: its items, whether more follow, the version's ETag.
+pub struct Page<T> {
+    pub items: Vec<T>,
+    pub truncated: bool,
+    pub etag: Option<String>,
+}
+
+/// Follows a paged listing (`fetch` gets the offset) to its end. Pages from
+/// two database versions (a reload in between, seen as a new ETag) do not make
+/// one list: the listing starts again.
+pub fn collect_pages<T, E>(mut fetch: impl FnMut(usize) -> Result<Page<T>, E>) -> Result<Vec<T>, E> {
+    let mut out = Vec::new();
+    let mut first_etag = None;
+    loop {
+        let page = fetch(out.len())?;
+        if out.is_empty() {
+            first_etag = page.etag;
+        } else if page.etag != first_etag {
+            out.clear();
+            first_etag = None;
+            continue;
+        }
+        let n = page.items.len();
+        out.extend(page.items);
+        if !page.truncated || n == 0 {
+            return Ok(out);
+        }
+    }
+}
+
 /// The server's addresses, looked up once at connect. ureq's own resolver
 /// looks the host up before every request, and with a timeout set does it on a
 /// new thread: a thread per query.
@@ -186,35 +216,16 @@ impl LandmarkSource for HttpSource {
             bbox.max_lon_deg.clamp(-180.0, 180.0),
             bbox.max_lat_deg.clamp(-90.0, 90.0),
         );
-        let mut out = Vec::new();
-        let mut first_etag = None;
         let mut body = self.body.lock().unwrap_or_else(|p| p.into_inner());
-        loop {
+        collect_pages(|offset| {
             // `{}` prints the shortest decimal that parses back to the same f64.
             let path = format!(
-                "/v1/templates?bbox={},{},{},{}&level={level}&limit={PAGE_SIZE}&offset={}",
-                b.min_lon_deg,
-                b.min_lat_deg,
-                b.max_lon_deg,
-                b.max_lat_deg,
-                out.len()
+                "/v1/templates?bbox={},{},{},{}&level={level}&limit={PAGE_SIZE}&offset={offset}",
+                b.min_lon_deg, b.min_lat_deg, b.max_lon_deg, b.max_lat_deg,
             );
             let etag = self.get_into(&path, wire::MEDIA_TYPE, &mut body)?;
-            // Pages from two database versions (a reload in between) do not
-            // make one list: start again.
-            if out.is_empty() {
-                first_etag = etag;
-            } else if etag != first_etag {
-                out.clear();
-                first_etag = None;
-                continue;
-            }
             let page = wire::decode(&body).map_err(|e| SourceError(format!("{}{path}: {e}", self.base)))?;
-            let n = page.templates.len();
-            out.extend(page.templates);
-            if !page.truncated || n == 0 {
-                return Ok(out);
-            }
-        }
+            Ok(Page { items: page.templates, truncated: page.truncated, etag })
+        })
     }
 }

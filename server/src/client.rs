@@ -9,6 +9,7 @@ use std::time::Duration;
 
 use serde::Deserialize;
 use trn_landmark::GeoBox;
+use trn_navigator::http_source::{collect_pages, Page};
 
 use crate::api::MAX_LIMIT;
 use crate::coverage::{CoverageReport, TemplateBox};
@@ -31,7 +32,7 @@ struct ErrorJson {
 
 /// A page of the `GET /v1/templates` JSON listing (other fields ignored).
 #[derive(Deserialize)]
-struct Page {
+struct Listing {
     templates: Vec<TemplateBox>,
     truncated: bool,
 }
@@ -77,36 +78,18 @@ impl Client {
     /// database versions (a reload in between) do not make one list: the
     /// listing starts again.
     pub fn template_boxes(&self, area: &GeoBox) -> Result<Vec<TemplateBox>, ServerError> {
-        let mut out = Vec::new();
-        let mut first_etag = None;
-        loop {
+        collect_pages(|offset| {
             // `{}` prints the shortest decimal that parses back to the same f64.
             let url = format!(
-                "{}/v1/templates?bbox={},{},{},{}&limit={MAX_LIMIT}&offset={}",
-                self.base,
-                area.min_lon_deg,
-                area.min_lat_deg,
-                area.max_lon_deg,
-                area.max_lat_deg,
-                out.len()
+                "{}/v1/templates?bbox={},{},{},{}&limit={MAX_LIMIT}&offset={offset}",
+                self.base, area.min_lon_deg, area.min_lat_deg, area.max_lon_deg, area.max_lat_deg,
             );
             let resp = self.agent.get(&url).header("Accept", "application/json").call();
             let (body, etag) = answer(&url, resp)?;
-            if out.is_empty() {
-                first_etag = etag;
-            } else if etag != first_etag {
-                out.clear();
-                first_etag = None;
-                continue;
-            }
-            let page: Page = serde_json::from_slice(&body)
+            let page: Listing = serde_json::from_slice(&body)
                 .map_err(|e| remote(&url, format!("not a template listing: {e}")))?;
-            let n = page.templates.len();
-            out.extend(page.templates);
-            if !page.truncated || n == 0 {
-                return Ok(out);
-            }
-        }
+            Ok(Page { items: page.templates, truncated: page.truncated, etag })
+        })
     }
 }
 

@@ -617,6 +617,12 @@ fn serve_names_bad_options() {
     assert!(stderr(&o).contains("--listen"), "{}", stderr(&o));
     let o = run(&["serve", "--db", db.to_str().unwrap(), "--timeout-s", "0"]);
     assert!(stderr(&o).contains("--timeout-s"), "{}", stderr(&o));
+    for bad in ["-1", "lots", "99999999999"] {
+        let o = run(&["serve", "--db", db.to_str().unwrap(), "--cache-mb", bad]);
+        assert!(!o.status.success(), "--cache-mb {bad} accepted");
+        // clap names the option, or (for "-1", read as a flag) the value.
+        assert!(stderr(&o).contains("--cache-mb") || stderr(&o).contains(bad), "{}", stderr(&o));
+    }
     let o = run(&["navigate", "--db", "x", "--server", "http://y", "--flight", "f", "--out", "o"]);
     assert!(!o.status.success());
     assert!(stderr(&o).contains("--server"), "{}", stderr(&o));

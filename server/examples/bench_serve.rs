@@ -135,7 +135,7 @@ fn main() {
     }
     if mode == "both" || mode == "memory" {
         // The server's hot path without HTTP: the whole database in memory.
-        let cat = Arc::new(db.load_catalogue(|_| {}).unwrap());
+        let cat = Arc::new(db.load_catalogue().unwrap());
         let (st, wall) = run_clients(clients, seconds, qs.clone(), |_| {
             let cat = cat.clone();
             Box::new(move |b: &GeoBox, l: u8| {

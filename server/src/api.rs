@@ -162,6 +162,15 @@ where
     Ok(v)
 }
 
+impl TemplatesQuery {
+    /// This query's page of `all` (best first, at most `offset + limit + 1`
+    /// long), and whether the list goes on after it.
+    fn page<T>(&self, all: Vec<T>) -> (Vec<T>, bool) {
+        let truncated = all.len() > self.offset + self.limit;
+        (all.into_iter().skip(self.offset).take(self.limit).collect(), truncated)
+    }
+}
+
 impl BboxParams {
     pub fn check(&self) -> Result<TemplatesQuery, ApiError> {
         let bbox = parse_bbox(self.bbox.as_deref().ok_or_else(|| {
@@ -306,10 +315,7 @@ pub async fn templates(
         // through the blocking pool (a thread hand-over each way).
         let etag = representation_etag(&db.etag, true);
         return Ok(cached(&headers, &etag, || {
-            let records = cat.query(&query);
-            let truncated = records.len() > q.offset + q.limit;
-            let page = records.get(q.offset..).unwrap_or_default();
-            let page = &page[..page.len().min(q.limit)];
+            let (page, truncated) = q.page(cat.query(&query));
             let mut out = Vec::with_capacity(wire::HEADER_LEN + page.iter().map(|r| r.len()).sum::<usize>());
             wire::write_header(&mut out, page.len() as u32, truncated);
             for r in page {
@@ -319,9 +325,7 @@ pub async fn templates(
         }));
     }
     read_answer(&state, &headers, move |store, binary| {
-        let all = store.query_bbox(&query).map_err(store_error)?;
-        let truncated = all.len() > q.offset + q.limit;
-        let list: Vec<_> = all.into_iter().skip(q.offset).take(q.limit).collect();
+        let (list, truncated) = q.page(store.query_bbox(&query).map_err(store_error)?);
         if binary {
             Ok(wire::encode(&list, truncated))
         } else {

@@ -100,7 +100,7 @@ impl Database {
             let need = first.catalogue_bytes()?;
             if need <= cache_bytes {
                 let t0 = Instant::now();
-                let c = first.load_catalogue(|_| {})?;
+                let c = first.load_catalogue()?;
                 info!(
                     "{}: {} templates in memory, {:.0} MB, read in {:.2} s",
                     path.display(),

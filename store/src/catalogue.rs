@@ -74,9 +74,8 @@ impl LandmarkDb {
         Ok(count as u64 * (wire::MIN_RECORD_LEN as u64 + INDEX_BYTES_PER_TEMPLATE) + blobs as u64)
     }
 
-    /// Reads every template into a [`Catalogue`]; `progress` is told the
-    /// templates read so far, every 4096.
-    pub fn load_catalogue(&self, mut progress: impl FnMut(u64)) -> Result<Catalogue, StoreError> {
+    /// Reads every template into a [`Catalogue`].
+    pub fn load_catalogue(&self) -> Result<Catalogue, StoreError> {
         let levels = self.levels()?;
         let count: u64 = levels.iter().map(|l| l.count).sum();
         let mut entries = Vec::with_capacity(count as usize);
@@ -109,12 +108,8 @@ impl LandmarkDb {
                 tree.push(GeomWithData::new(rect, index));
             }
             entries.push(Entry { rank: Rank::of(&t), footprint: fp, start, len: records.len() - start });
-            if entries.len() % 4096 == 0 {
-                progress(entries.len() as u64);
-            }
             Ok(())
         })?;
-        progress(entries.len() as u64);
         records.shrink_to_fit();
         let by_level = boxes.into_iter().map(|(l, b)| (l, RTree::bulk_load(b))).collect();
         Ok(Catalogue { path: self.path().to_owned(), levels, by_level, entries, records })
@@ -244,10 +239,8 @@ mod tests {
         w.insert_batch(&mut ts).unwrap();
         w.finish().unwrap();
         let db = LandmarkDb::open(&path).unwrap();
-        let mut ticks = Vec::new();
-        let cat = db.load_catalogue(|n| ticks.push(n)).unwrap();
+        let cat = db.load_catalogue().unwrap();
         assert_eq!(cat.len(), 3000);
-        assert_eq!(ticks.last(), Some(&3000));
         assert_eq!(cat.levels(), db.levels().unwrap().as_slice());
         let estimate = db.catalogue_bytes().unwrap();
         assert!(estimate >= cat.memory_bytes(), "estimate {estimate} < {}", cat.memory_bytes());

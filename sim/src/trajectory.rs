@@ -1,5 +1,7 @@
 //! Vehicle trajectories of the simulator: a balloon gondola descending under a
-//! parachute and a rocket ascending (New Shepard-like). Pure math, no I/O.
+//! parachute, a rocket ascending (New Shepard-like) and an aircraft in level
+//! flight (a low pass over terrain, straight or in a constant turn). Pure
+//! math, no I/O.
 //!
 //! [`Trajectory::state`] gives the position (ECEF, WGS84), the velocity and the
 //! acceleration relative to ECEF and the attitude `q_ecef_imu` at any time.
@@ -8,9 +10,10 @@
 //! meaningful. The formulas extend smoothly a little beyond `[0, duration]`
 //! (the first gyro sample looks back one sample period).
 //!
-//! Body (IMU) frame of both vehicles, "FRD-like": x a horizontal forward
-//! reference, y right, z down when the gondola hangs still or when the rocket
-//! flies straight up (rocket z points out of the tail; its roll is about z).
+//! Body (IMU) frame of every vehicle, "FRD-like": x a horizontal forward
+//! reference, y right, z down when the gondola hangs still, when the rocket
+//! flies straight up (rocket z points out of the tail; its roll is about z) or
+//! when the aircraft flies level (x along the nose).
 
 use std::f64::consts::PI;
 use std::ops::{Add, Mul, Neg, Sub};
@@ -21,12 +24,13 @@ use trn_geodesy::{Ecef, Geodetic, WGS84_A, WGS84_E2};
 
 use crate::rng::Rng;
 
-/// A vehicle's trajectory model (`"kind": "balloon"` or `"kind": "rocket"` in JSON).
+/// A vehicle's trajectory model (`"kind": "balloon"`, `"rocket"` or `"aircraft"` in JSON).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case")]
 pub enum TrajectoryParams {
     Balloon(BalloonParams),
     Rocket(RocketParams),
+    Aircraft(AircraftParams),
 }
 
 impl Default for TrajectoryParams {
@@ -41,6 +45,7 @@ impl TrajectoryParams {
         match self {
             TrajectoryParams::Balloon(p) => p.validate(),
             TrajectoryParams::Rocket(p) => p.validate(),
+            TrajectoryParams::Aircraft(p) => p.validate(),
         }
     }
 }
@@ -170,6 +175,71 @@ impl Default for RocketParams {
     }
 }
 
+/// Level flight at a constant height above the ellipsoid (a low pass over
+/// terrain, a survey line): constant speed, heading turning at a constant
+/// rate (0: a straight line), coordinated bank `atan(v omega / g)`, a constant
+/// nose-up pitch, and a slow wobble in roll and pitch.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct AircraftParams {
+    /// Height above the WGS84 ellipsoid, held for the whole flight (m).
+    pub h_m: f64,
+    /// Ground speed (m/s; exact at the origin's latitude, within ~1e-3 over tens of km).
+    pub speed_m_s: f64,
+    /// Heading at t = 0 (deg, clockwise from north).
+    pub heading_deg: f64,
+    /// Rate of turn (deg/s, positive clockwise seen from above); 0 flies straight.
+    pub turn_rate_deg_s: f64,
+    /// Flight duration (s).
+    pub duration_s: f64,
+    /// Nose-up pitch of body x above the horizon (deg).
+    pub pitch_deg: f64,
+    /// Amplitude of the wobble about the roll and pitch axes (deg).
+    pub wobble_deg: f64,
+    /// Mean wobble frequency (Hz); each axis draws its own within +-30 %.
+    pub wobble_hz: f64,
+}
+
+impl Default for AircraftParams {
+    fn default() -> Self {
+        Self {
+            h_m: 5000.0,
+            speed_m_s: 120.0,
+            heading_deg: 90.0,
+            turn_rate_deg_s: 0.0,
+            duration_s: 60.0,
+            pitch_deg: 2.0,
+            wobble_deg: 0.5,
+            wobble_hz: 0.3,
+        }
+    }
+}
+
+impl AircraftParams {
+    /// Checks the parameters; the error names the bad field.
+    pub fn validate(&self) -> Result<(), String> {
+        if !(-1000.0..=30_000.0).contains(&self.h_m) {
+            return Err(format!("aircraft.h_m must be in [-1000, 30000] (got {})", self.h_m));
+        }
+        if !(self.speed_m_s > 0.0 && self.speed_m_s <= 1000.0) {
+            return Err(format!("aircraft.speed_m_s must be in (0, 1000] (got {})", self.speed_m_s));
+        }
+        finite("aircraft.heading_deg", self.heading_deg)?;
+        if !(-10.0..=10.0).contains(&self.turn_rate_deg_s) {
+            return Err(format!("aircraft.turn_rate_deg_s must be in [-10, 10] (got {})", self.turn_rate_deg_s));
+        }
+        positive("aircraft.duration_s", self.duration_s)?;
+        if !(-30.0..=30.0).contains(&self.pitch_deg) {
+            return Err(format!("aircraft.pitch_deg must be in [-30, 30] (got {})", self.pitch_deg));
+        }
+        if !(0.0..=10.0).contains(&self.wobble_deg) {
+            return Err(format!("aircraft.wobble_deg must be in [0, 10] (got {})", self.wobble_deg));
+        }
+        positive("aircraft.wobble_hz", self.wobble_hz)?;
+        Ok(())
+    }
+}
+
 fn finite(name: &str, v: f64) -> Result<(), String> {
     if v.is_finite() {
         Ok(())
@@ -295,6 +365,7 @@ pub struct Trajectory {
 enum Model {
     Balloon(Balloon),
     Rocket(Rocket),
+    Aircraft(Aircraft),
 }
 
 impl Trajectory {
@@ -316,6 +387,15 @@ impl Trajectory {
                 (Model::Balloon(b), d)
             }
             TrajectoryParams::Rocket(p) => (Model::Rocket(Rocket::new(p, origin, seed)), p.duration_s),
+            TrajectoryParams::Aircraft(p) => {
+                if p.h_m <= origin.h_m {
+                    return Err(format!(
+                        "aircraft.h_m ({:.1} m) must be above the terrain height at the origin ({:.1} m)",
+                        p.h_m, origin.h_m
+                    ));
+                }
+                (Model::Aircraft(Aircraft::new(p, origin, seed)), p.duration_s)
+            }
         };
         Ok(Trajectory { model, origin, duration_s })
     }
@@ -335,6 +415,7 @@ impl Trajectory {
         match &self.model {
             Model::Balloon(b) => b.state(t),
             Model::Rocket(r) => r.state(t),
+            Model::Aircraft(a) => a.state(t),
         }
     }
 }
@@ -763,6 +844,62 @@ impl Rocket {
     }
 }
 
+// ---------------------------------------------------------------------------
+// Aircraft.
+
+#[derive(Clone, Debug)]
+struct Aircraft {
+    p: AircraftParams,
+    lat0: f64,
+    lon0: f64,
+    /// Metres per radian of latitude / longitude, at the flight height.
+    r_north: f64,
+    r_east: f64,
+    /// Wobble about body x (roll) and y (pitch): angular frequency (rad/s) and phase.
+    wobble: [(f64, f64); 2],
+}
+
+/// Standard gravity for the coordinated bank angle (m/s^2).
+const G0: f64 = 9.80665;
+
+impl Aircraft {
+    fn new(p: &AircraftParams, origin: Geodetic, seed: u64) -> Aircraft {
+        let g0 = origin.with_height(p.h_m);
+        let r_north = g0.meridian_radius_m() + p.h_m;
+        let r_east = (g0.prime_vertical_radius_m() + p.h_m) * origin.lat_rad().cos();
+        let mut rng = Rng::stream(seed, "aircraft_wobble");
+        let mut wob = || (2.0 * PI * p.wobble_hz * rng.range(0.7, 1.3), rng.range(0.0, 2.0 * PI));
+        let wobble = [wob(), wob()];
+        Aircraft { p: p.clone(), lat0: origin.lat_rad(), lon0: origin.lon_rad(), r_north, r_east, wobble }
+    }
+
+    fn state(&self, t: f64) -> BodyState {
+        let p = &self.p;
+        let tj = Jet::var(t);
+        let (v, om, psi0) = (p.speed_m_s, p.turn_rate_deg_s.to_radians(), p.heading_deg.to_radians());
+        let psi = tj * om + psi0;
+        // Ground track: east = int v sin(psi), north = int v cos(psi).
+        let (east, north) = if om.abs() < 1e-12 {
+            (tj * (v * psi0.sin()), tj * (v * psi0.cos()))
+        } else {
+            let k = v / om;
+            ((-psi.cos() + psi0.cos()) * k, (psi.sin() + (-psi0.sin())) * k)
+        };
+        let lat = north * (1.0 / self.r_north) + self.lat0;
+        let lon = east * (1.0 / self.r_east) + self.lon0;
+        let (r, vel, acc) = split(geodetic_to_ecef_jet(lat, lon, Jet::cst(p.h_m)));
+        let amp = p.wobble_deg.to_radians();
+        let wob = |i: usize| amp * (self.wobble[i].0 * t + self.wobble[i].1).sin();
+        let roll = (v * om / G0).atan() + wob(0);
+        let pitch = p.pitch_deg.to_radians() + wob(1);
+        let q_ned_body = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), psi.v)
+            * UnitQuaternion::from_axis_angle(&Vector3::y_axis(), pitch)
+            * UnitQuaternion::from_axis_angle(&Vector3::x_axis(), roll);
+        let q = q_ecef_enu(lat.v, lon.v) * q_enu_ned() * q_ned_body;
+        BodyState { t, position: Ecef(r), velocity_ecef_m_s: vel, accel_ecef_m_s2: acc, q_ecef_imu: q }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -907,6 +1044,63 @@ mod tests {
         let f = LocalFrame::at(origin());
         let v = f.vector_to_enu(&s1.velocity_ecef_m_s);
         assert!(v.x > 0.0 && v.y.abs() < 1e-9 * v.x, "downrange east: {v:?}");
+    }
+
+    #[test]
+    fn aircraft_level_turn_and_attitude() {
+        // A constant turn: constant height, speed, the circle's radius v / omega, the
+        // heading along the velocity and the coordinated bank atan(v omega / g).
+        let p = AircraftParams {
+            h_m: 6000.0,
+            speed_m_s: 150.0,
+            turn_rate_deg_s: 3.0,
+            wobble_deg: 0.0,
+            pitch_deg: 0.0,
+            ..Default::default()
+        };
+        let tr = Trajectory::new(&TrajectoryParams::Aircraft(p.clone()), origin(), 3).unwrap();
+        let om = p.turn_rate_deg_s.to_radians();
+        let radius = p.speed_m_s / om;
+        let f = LocalFrame::at(origin().with_height(p.h_m));
+        // Centre of the turn: right of the initial heading (east) = south of the start.
+        let centre = Vector3::new(0.0, -radius, 0.0);
+        let bank = (p.speed_m_s * om / G0).atan();
+        for i in 0..=60 {
+            let t = i as f64;
+            let s = tr.state(t);
+            let g = s.position.to_geodetic();
+            assert!((g.h_m - p.h_m).abs() < 1e-6, "t {t}: h {}", g.h_m);
+            // Longitude is scaled at the origin's latitude: the speed drifts by ~1e-3 over km.
+            assert!((s.velocity_ecef_m_s.norm() - p.speed_m_s).abs() < 2e-3 * p.speed_m_s, "t {t}");
+            let e = f.to_enu(&s.position).0;
+            // The ellipsoid curves away from the tangent plane by d^2 / 2R over the circle.
+            let r = (Vector3::new(e.x, e.y, 0.0) - centre).norm();
+            assert!((r - radius).abs() < 2.0, "t {t}: radius {r} vs {radius}");
+            let nose = s.q_ecef_imu * Vector3::x();
+            assert!(nose.angle(&s.velocity_ecef_m_s) < 1e-3, "t {t}: nose off the velocity");
+            let right = s.q_ecef_imu * Vector3::y();
+            let up = g.up_ecef();
+            let roll = (-right.dot(&up)).asin();
+            assert!((roll - bank).abs() < 1e-3, "t {t}: roll {roll} vs bank {bank}");
+        }
+        check_derivatives(&tr);
+        let straight = AircraftParams { turn_rate_deg_s: 0.0, ..Default::default() };
+        let tr = Trajectory::new(&TrajectoryParams::Aircraft(straight.clone()), origin(), 3).unwrap();
+        check_derivatives(&tr);
+        let d = f.to_enu(&tr.state(straight.duration_s).position).0;
+        let dist = straight.speed_m_s * straight.duration_s;
+        // Heading east follows the parallel, d^2 tan(lat) / 2R (2.6 m here) north of the tangent.
+        let parallel = dist * dist * origin().lat_rad().tan() / (2.0 * WGS84_A);
+        assert!((d.x - dist).abs() < 1.0 && (d.y - parallel).abs() < 0.1, "straight east: {d:?}");
+        let e = Trajectory::new(
+            &TrajectoryParams::Aircraft(AircraftParams { h_m: 1000.0, ..Default::default() }),
+            origin(),
+            0,
+        )
+        .unwrap_err();
+        assert!(e.contains("aircraft.h_m") && e.contains("terrain"), "{e}");
+        let e = AircraftParams { speed_m_s: 0.0, ..Default::default() }.validate().unwrap_err();
+        assert!(e.contains("aircraft.speed_m_s"), "{e}");
     }
 
     fn check_derivatives(tr: &Trajectory) {

@@ -3,7 +3,10 @@
 //! - Geometry: ground points picked on the ortho's pixel grid are projected
 //!   through the flight's truth pose and camera model, and the ortho patch
 //!   around each is found in the rendered image at that pixel (< 0.2 px), for
-//!   a nadir, a 60-degree tilted and a distorted 30-degree tilted camera. The
+//!   a nadir, a 60-degree tilted and a distorted 30-degree tilted camera, and
+//!   a spinning nadir camera whose true focal length, principal point, k1 and
+//!   clock differ from `camera.json` (the image must follow the true camera
+//!   at the exposure time, where `camera.json` at the stamp is pixels off). The
 //!   reference is built without the simulator's code: GDAL for the map
 //!   projection and the rasters, a brute-force ray march through the DEM,
 //!   `trn_camera` for the rays, the ortho's luma sampled bilinearly (averaged
@@ -552,6 +555,19 @@ struct GeoCase {
     /// Ground point under the camera (UTM 13N).
     origin_utm: (f64, f64),
     distortion: [f64; 5],
+    /// `camera_error` of the scenario (focal, principal point, k1, time offset).
+    camera_error: Option<CameraErrorCase>,
+}
+
+/// A calibration and timing error: the image must follow the *true* camera at
+/// the *exposure* time, not `camera.json` at the stamp.
+struct CameraErrorCase {
+    focal_rel: f64,
+    principal_px: (f64, f64),
+    k1: f64,
+    time_offset_s: f64,
+    /// The balloon's yaw rate (deg/s), so that the time offset shows.
+    yaw_rate_deg_s: f64,
 }
 
 #[derive(Default)]
@@ -677,7 +693,7 @@ fn check_point(
 fn geometric_case(dir: &Path, world: &World, ortho: &Path, dem: &Path, case: &GeoCase) -> GeoSummary {
     let (lat, lon) = world.to_lat_lon(&[case.origin_utm])[0];
     let d = case.distortion;
-    let scenario = json!({
+    let mut scenario = json!({
         "name": case.name,
         "origin": {"lat": lat, "lon": lon},
         "camera": {
@@ -689,20 +705,46 @@ fn geometric_case(dir: &Path, world: &World, ortho: &Path, dem: &Path, case: &Ge
             "pendulum_deg": 0.0, "yaw_rate_deg_s": 0.0, "spin_bursts": 0
         }
     });
+    // With a time offset, a second frame one offset later gives the truth at
+    // the first frame's exposure.
+    let mut duration = "0".to_string();
+    if let Some(e) = &case.camera_error {
+        scenario["camera_error"] = json!({
+            "focal_rel": e.focal_rel, "principal_du_px": e.principal_px.0, "principal_dv_px": e.principal_px.1,
+            "k1": e.k1, "time_offset_s": e.time_offset_s
+        });
+        scenario["trajectory"]["yaw_rate_deg_s"] = json!(e.yaw_rate_deg_s);
+        scenario["frame_rate_hz"] = json!(1.0 / e.time_offset_s);
+        duration = format!("{}", e.time_offset_s);
+    }
     let sc = write_scenario(dir, case.name, &scenario);
     let out = dir.join(format!("flight-{}", case.name));
-    simulate_ok(ortho, dem, &sc, &out, &["--duration", "0"]);
+    simulate_ok(ortho, dem, &sc, &out, &["--duration", &duration]);
 
     let flight = Flight::open(&out).unwrap();
-    assert_eq!(flight.frames.len(), 1, "{}: --duration 0 gives one frame", case.name);
-    let model = trn_flight::read_camera(&out.join("camera.json")).unwrap().model;
-    let k = model.distortion;
+    let n_frames = if case.camera_error.is_some() { 2 } else { 1 };
+    assert_eq!(flight.frames.len(), n_frames, "{}: frames for --duration {duration}", case.name);
+    let nominal = trn_flight::read_camera(&out.join("camera.json")).unwrap().model;
+    let k = nominal.distortion;
     assert_eq!([k.k1, k.k2, k.p1, k.p2, k.k3], d, "{}: camera.json lens", case.name);
     if d == [0.0; 5] {
-        assert!((model.hfov_deg() - 40.0).abs() < 1e-9, "{}: hfov {}", case.name, model.hfov_deg());
+        assert!((nominal.hfov_deg() - 40.0).abs() < 1e-9, "{}: hfov {}", case.name, nominal.hfov_deg());
     }
-    let truth = flight.truth.as_ref().unwrap()[0];
+    let truth = flight.truth.as_ref().unwrap()[n_frames - 1];
     let pose = CameraPose::new(truth.position.to_ecef(), truth.q_ecef_cam);
+    // The camera that took the image: camera.json with the errors applied.
+    let mut model = nominal;
+    if let Some(e) = &case.camera_error {
+        model.fx *= 1.0 + e.focal_rel;
+        model.fy *= 1.0 + e.focal_rel;
+        model.cx += e.principal_px.0;
+        model.cy += e.principal_px.1;
+        model.distortion.k1 += e.k1;
+        assert_eq!(flight.frames[1].t, truth.t);
+    }
+    let stamped = flight.truth.as_ref().unwrap()[0];
+    let stamped = CameraPose::new(stamped.position.to_ecef(), stamped.q_ecef_cam);
+    let mut naive_shift = Vec::new();
     let (grey, w, h) = read_grey(&flight.image_path(&flight.frames[0]));
     assert_eq!((w, h), (model.width as usize, model.height as usize));
     let img = blur(&grey.iter().map(|&v| v as f64).collect::<Vec<_>>(), w, h);
@@ -728,6 +770,10 @@ fn geometric_case(dir: &Path, world: &World, ortho: &Path, dem: &Path, case: &Ge
             continue;
         }
         let Some(px) = pose.project(&model, &p) else { continue };
+        // Where a navigator trusting camera.json and the stamp would predict it.
+        if let Some(q) = stamped.project(&nominal, &p) {
+            naive_shift.push((q.u - px.u).hypot(q.v - px.v));
+        }
         if px.u < margin || px.v < margin || px.u > w as f64 - 1.0 - margin || px.v > h as f64 - 1.0 - margin
         {
             continue;
@@ -766,6 +812,12 @@ fn geometric_case(dir: &Path, world: &World, ortho: &Path, dem: &Path, case: &Ge
             }
         }
     }
+    if case.camera_error.is_some() {
+        // The errors matter: trusting camera.json at the stamp would be pixels off.
+        let m = mean(&naive_shift);
+        println!("{}: camera.json at the stamp predicts {m:.2} px off on average", case.name);
+        assert!(m > 3.0, "{}: the camera error moves the projection by only {m:.2} px", case.name);
+    }
     assert!(
         sum.offsets.len() >= 25,
         "{}: only {} usable ground points ({} candidates in view, {} ambiguous, {} unusable)",
@@ -802,6 +854,7 @@ fn rendered_pixels_see_the_ground_points_the_truth_pose_projects() {
             start_h_m: terrain + 3300.0,
             origin_utm: (centre.0 + 130.0, centre.1 - 70.0),
             distortion: no_lens,
+            camera_error: None,
         },
         GeoCase {
             name: "tilt60",
@@ -809,6 +862,7 @@ fn rendered_pixels_see_the_ground_points_the_truth_pose_projects() {
             start_h_m: terrain + 1400.0,
             origin_utm: (centre.0, centre.1 - 2600.0),
             distortion: no_lens,
+            camera_error: None,
         },
         GeoCase {
             name: "tilt30-distorted",
@@ -816,6 +870,21 @@ fn rendered_pixels_see_the_ground_points_the_truth_pose_projects() {
             start_h_m: terrain + 3300.0,
             origin_utm: (centre.0, centre.1 - 2100.0),
             distortion: [-0.25, 0.08, 0.001, -0.0005, 0.0],
+            camera_error: None,
+        },
+        GeoCase {
+            name: "nadir-calibration-and-clock-error",
+            tilt_deg: 0.0,
+            start_h_m: terrain + 3300.0,
+            origin_utm: (centre.0 + 130.0, centre.1 - 70.0),
+            distortion: no_lens,
+            camera_error: Some(CameraErrorCase {
+                focal_rel: 0.01,
+                principal_px: (1.5, -1.0),
+                k1: -0.02,
+                time_offset_s: 0.05,
+                yaw_rate_deg_s: 20.0,
+            }),
         },
     ];
     for case in &cases {

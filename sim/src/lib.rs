@@ -110,7 +110,11 @@ pub fn simulate(opts: &SimOptions, cancel: &AtomicBool) -> Result<SimReport, Sim
         .map_err(|reason| SimError::Input { path: opts.scenario.clone(), reason })?;
     let duration = opts.max_duration_s.map_or(traj.duration_s(), |d| d.min(traj.duration_s()));
     let n_frames = (duration * scenario.frame_rate_hz + 1e-9).floor() as usize + 1;
+    // camera.json gets the nominal camera; the images are rendered with the
+    // true one, exposed `time_offset_s` after their IMU-clock stamp.
     let camera = scenario.camera.model();
+    let true_camera = scenario.camera_error.apply(&camera);
+    let exposure_offset_s = scenario.camera_error.time_offset_s;
     let q_imu_cam = scenario.camera.q_cam_imu().inverse();
     let pose_at = |t: f64| {
         let s = traj.state(t);
@@ -134,7 +138,7 @@ pub fn simulate(opts: &SimOptions, cancel: &AtomicBool) -> Result<SimReport, Sim
     let resolved = serde_json::to_string_pretty(&scenario).expect("a scenario serializes");
     std::fs::write(dir.join("scenario.json"), resolved + "\n").map_err(out_err)?;
 
-    let renderer = render::Renderer::new(&scene, camera);
+    let renderer = render::Renderer::new(&scene, true_camera);
     let bar = ProgressBar::new(n_frames as u64);
     bar.set_style(
         ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} frames, {elapsed_precise} (eta {eta})")
@@ -161,19 +165,20 @@ pub fn simulate(opts: &SimOptions, cancel: &AtomicBool) -> Result<SimReport, Sim
             return Err(SimError::Cancelled);
         }
         let t0 = Instant::now();
-        let cam_pose = CameraPose::new(pose.position.to_ecef(), pose.q_ecef_cam);
+        let exposed = if exposure_offset_s == 0.0 { *pose } else { pose_at(pose.t + exposure_offset_s) };
+        let cam_pose = CameraPose::new(exposed.position.to_ecef(), exposed.q_ecef_cam);
         renderer.render_into(&cam_pose, &mut img);
         let geo = FrameGeometry {
-            camera: &camera,
+            camera: &true_camera,
             pose: &cam_pose,
-            camera_height_m: pose.position.h_m,
+            camera_height_m: exposed.position.h_m,
             range_m: &img.range_m,
             hit_height_m: &img.hit_height_m,
         };
         let ctx = FrameContext {
             index: k,
             t: pose.t,
-            w_cam_rad_s: camera_rate(&pose_at, pose.t, duration),
+            w_cam_rad_s: camera_rate(&pose_at, exposed.t, duration + exposure_offset_s.max(0.0)),
             exposure_s: scenario.camera.exposure_s,
         };
         // Coverage before the effects change the grey levels.

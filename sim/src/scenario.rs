@@ -34,6 +34,9 @@ pub struct Scenario {
     pub imu: ImuParams,
     #[serde(default)]
     pub init_error: InitError,
+    /// How the real camera differs from `camera.json` (what the navigator is told).
+    #[serde(default, skip_serializing_if = "CameraError::is_none")]
+    pub camera_error: CameraError,
     #[serde(default)]
     pub realism: Realism,
 }
@@ -116,6 +119,63 @@ impl Default for InitError {
     }
 }
 
+/// Calibration and timing errors: the images are rendered with the *true*
+/// camera, `camera.json` carries the nominal one (the scenario's `camera`),
+/// so a navigator that trusts `camera.json` sees them as a real flight would.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CameraError {
+    /// Relative focal length error: the true fx and fy are the nominal ones times
+    /// `1 + focal_rel` (0.003 = 0.3 %, a lens warming up).
+    pub focal_rel: f64,
+    /// True principal point minus the nominal one, along u (pixels).
+    pub principal_du_px: f64,
+    /// True principal point minus the nominal one, along v (pixels).
+    pub principal_dv_px: f64,
+    /// Added to the nominal radial distortion coefficient k1.
+    pub k1: f64,
+    /// Added to the nominal radial distortion coefficient k2.
+    pub k2: f64,
+    /// Camera clock minus IMU clock (s): the image stamped `t` in `frames.csv`
+    /// (IMU time; `truth.csv` holds the pose at `t`) was exposed at `t + time_offset_s`.
+    pub time_offset_s: f64,
+}
+
+impl CameraError {
+    pub fn is_none(&self) -> bool {
+        *self == Self::default()
+    }
+
+    /// The true camera behind a nominal model.
+    pub fn apply(&self, nominal: &CameraModel) -> CameraModel {
+        let mut m = *nominal;
+        m.fx *= 1.0 + self.focal_rel;
+        m.fy *= 1.0 + self.focal_rel;
+        m.cx += self.principal_du_px;
+        m.cy += self.principal_dv_px;
+        m.distortion.k1 += self.k1;
+        m.distortion.k2 += self.k2;
+        m
+    }
+
+    fn validate(&self, nominal: &CameraModel) -> Result<(), String> {
+        let checks = [
+            ("focal_rel", self.focal_rel, 0.1),
+            ("principal_du_px", self.principal_du_px, 0.25 * nominal.width as f64),
+            ("principal_dv_px", self.principal_dv_px, 0.25 * nominal.height as f64),
+            ("k1", self.k1, 1.0),
+            ("k2", self.k2, 1.0),
+            ("time_offset_s", self.time_offset_s, 0.5),
+        ];
+        for (name, v, max) in checks {
+            if !(v.is_finite() && v.abs() <= max) {
+                return Err(format!("camera_error.{name} {v} must be within +-{max}"));
+            }
+        }
+        self.apply(nominal).validate().map_err(|e| format!("camera_error: the true camera: {e}"))
+    }
+}
+
 impl Scenario {
     /// Reads and checks a scenario file.
     pub fn load(path: &Path) -> Result<Scenario, SimError> {
@@ -142,6 +202,7 @@ impl Scenario {
             return Err(format!("camera.exposure_s {} must be in [0, 1]", c.exposure_s));
         }
         c.model().validate().map_err(|e| format!("camera: {e}"))?;
+        self.camera_error.validate(&c.model())?;
         if !(self.frame_rate_hz > 0.0 && self.frame_rate_hz <= 100.0) {
             return Err(format!("frame_rate_hz {} must be in (0, 100]", self.frame_rate_hz));
         }
@@ -179,6 +240,41 @@ mod tests {
             tilt_deg: tilt,
             exposure_s: 0.0,
         }
+    }
+
+    #[test]
+    fn camera_error_makes_the_true_camera_and_names_bad_fields() {
+        let nominal = spec(0.0).model();
+        let e = CameraError {
+            focal_rel: 0.003,
+            principal_du_px: 1.5,
+            principal_dv_px: -1.0,
+            k1: 0.01,
+            k2: -0.002,
+            time_offset_s: 0.005,
+        };
+        let t = e.apply(&nominal);
+        assert_eq!(t.fx, nominal.fx * 1.003);
+        assert_eq!(t.fy, nominal.fy * 1.003);
+        assert_eq!((t.cx - nominal.cx, t.cy - nominal.cy), (1.5, -1.0));
+        assert_eq!((t.distortion.k1, t.distortion.k2), (0.01, -0.002));
+        assert!(e.validate(&nominal).is_ok());
+        for (bad, field) in [
+            (CameraError { focal_rel: f64::NAN, ..e.clone() }, "camera_error.focal_rel"),
+            (CameraError { principal_du_px: 40.0, ..e.clone() }, "camera_error.principal_du_px"),
+            (CameraError { time_offset_s: -0.6, ..e.clone() }, "camera_error.time_offset_s"),
+            (CameraError { k2: 2.0, ..e.clone() }, "camera_error.k2"),
+        ] {
+            let msg = bad.validate(&nominal).unwrap_err();
+            assert!(msg.contains(field), "{msg}");
+        }
+        // Off by default, and then not written to the resolved scenario.
+        let s: Scenario = serde_json::from_str(
+            r#"{"camera": {"width": 64, "height": 48, "hfov_deg": 30}, "trajectory": {"kind": "balloon"}}"#,
+        )
+        .unwrap();
+        assert!(s.camera_error.is_none());
+        assert!(!serde_json::to_string(&s).unwrap().contains("camera_error"));
     }
 
     #[test]

@@ -226,7 +226,10 @@ impl AircraftParams {
         }
         finite("aircraft.heading_deg", self.heading_deg)?;
         if !(-10.0..=10.0).contains(&self.turn_rate_deg_s) {
-            return Err(format!("aircraft.turn_rate_deg_s must be in [-10, 10] (got {})", self.turn_rate_deg_s));
+            return Err(format!(
+                "aircraft.turn_rate_deg_s must be in [-10, 10] (got {})",
+                self.turn_rate_deg_s
+            ));
         }
         positive("aircraft.duration_s", self.duration_s)?;
         if !(-30.0..=30.0).contains(&self.pitch_deg) {

@@ -16,8 +16,9 @@
 #     and four files in real/ made from them with gdal_translate only (no
 #     resampling: subsets and re-labelled georeferences, deterministic),
 #     verified by a fingerprint of size, geotransform and GDAL pixel checksums:
-#       sierra-dem.tif          REAL: srtm90.tif cut to -118.751..-118.328 E,
-#                               37.201..37.640 N (eastern Sierra escarpment
+#       sierra-dem.tif          REAL: srtm90.tif pixel window 2479,1220
+#                               523x543 = -118.752..-118.329 E,
+#                               37.202..37.641 N (eastern Sierra escarpment
 #                               above Bishop: Rock Creek, Mt Tom, Bishop Creek,
 #                               Owens Valley, Volcanic Tableland; 523x543 px,
 #                               ~37 x 49 km, 1205-4237 m, p95 slope 35 deg)
@@ -33,8 +34,9 @@
 #                               shipped (flat, low-texture world: lake,
 #                               evaporation ponds, salt/mud flats, I-80)
 #       gsl-dem-draped.tif      DRAPED: real flat SRTM of the San Joaquin
-#                               Valley (srtm90.tif window -120.740..-120.359 E,
-#                               36.870..37.269 N, ~55 m relief) + 1240 m (so
+#                               Valley (srtm90.tif pixel window 19,1679
+#                               471x494 = -120.741..-120.360 E,
+#                               36.870..37.269 N, 54 m relief) + 1240 m (so
 #                               heights ~1255-1310 m match the real lake shore,
 #                               ~1280 m), re-labelled onto landsat.tif bounds
 #     Use --ortho-bands 3,2,1 and --dem-vertical egm96 with these.
@@ -158,9 +160,9 @@ derive() {
   mv "$tmp" "$out"
 }
 
-# Mountains: real SRTM subset (no resampling, -projwin snaps to source pixels).
+# Mountains: real SRTM subset (pixel window, no resampling).
 derive "$real/sierra-dem.tif" "$fp_sierra_dem" \
-  -projwin -118.751 37.640 -118.328 37.201 "$srtm90"
+  -srcwin 2479 1220 523 543 "$srtm90"
 # Draped ortho: Utah Landsat pixels unchanged, georeference re-labelled.
 derive "$real/sierra-ortho-draped.tif" "$fp_sierra_ortho" \
   -a_srs EPSG:4326 -a_ullr -118.731 37.620 -118.348 37.221 "$landsat"
@@ -168,7 +170,7 @@ derive "$real/sierra-ortho-draped.tif" "$fp_sierra_ortho" \
 derive "$real/gsl-landsat7.tif" "$fp_gsl_ortho" "$landsat"
 # Draped flat DEM: San Joaquin Valley SRTM patch + 1240 m on the Utah bounds.
 derive "$real/gsl-dem-draped.tif" "$fp_gsl_dem" \
-  -projwin -120.740 37.269 -120.3593 36.8696 -scale 0 1000 1240 2240 -ot Int16 \
+  -srcwin 19 1679 471 494 -scale 0 1000 1240 2240 -ot Int16 \
   -a_srs EPSG:4326 -a_ullr -112.9090535 41.0054805 -112.5077761 40.6060895 "$srtm90"
 
 ls -l "$real"

@@ -46,6 +46,13 @@ pub struct FrameContext {
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Realism {
+    /// The camera's spectral response: its own weights of the ortho's red,
+    /// green and blue bands (applied when the scene is loaded, see
+    /// [`Spectral`]).
+    pub spectral: Option<Spectral>,
+    /// A slow multiplicative brightness field fixed on the ground (season,
+    /// soil moisture, thin haze), applied before the atmosphere.
+    pub brightness_field: Option<BrightnessField>,
     pub photometric: Option<Photometric>,
     pub haze: Option<Haze>,
     pub noise: Option<SensorNoise>,
@@ -55,19 +62,93 @@ pub struct Realism {
     pub cords: Option<Cords>,
 }
 
-/// Sensor response different from the ortho's: `out = 255 ((gain in + offset) / 255)^gamma`.
+/// The camera's spectral response differs from the database's luminance
+/// (Rec. 601 luma of the ortho's red, green, blue): the camera sees
+/// `weights[0] red + weights[1] green + weights[2] blue`, the weights scaled
+/// to sum to 1 (e.g. `[0.1, 0.3, 0.6]` for a blue-heavy sensor, `[0.6, 0.3,
+/// 0.1]` for a red-heavy one). Needs an ortho whose luminance comes from
+/// three bands.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Spectral {
+    pub weights: [f64; 3],
+}
+
+impl Default for Spectral {
+    fn default() -> Self {
+        Self { weights: [0.6, 0.3, 0.1] }
+    }
+}
+
+impl Spectral {
+    /// The weights scaled to sum to 1.
+    pub fn normalized(&self) -> [f32; 3] {
+        let s: f64 = self.weights.iter().sum();
+        self.weights.map(|w| (w / s) as f32)
+    }
+}
+
+/// A slow brightness field on the ground: each terrain pixel is multiplied by
+/// `1 + amplitude (2 n - 1)`, `n` in [0, 1] being smooth value noise of the
+/// ground point's ECEF position over cells of `scale_m` (fixed on the ground,
+/// so consistent between frames; seeded).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct BrightnessField {
+    pub amplitude: f64,
+    pub scale_m: f64,
+}
+
+impl Default for BrightnessField {
+    fn default() -> Self {
+        Self { amplitude: 0.15, scale_m: 5000.0 }
+    }
+}
+
+impl BrightnessField {
+    /// The factor at a ground point.
+    pub fn factor(&self, p_ecef: &Vector3<f64>, seed: u64) -> f64 {
+        let n = value_noise3(seed ^ 0x5EA5_0B12_647E_F1E1, &(p_ecef / self.scale_m));
+        1.0 + self.amplitude * (2.0 * n - 1.0)
+    }
+}
+
+/// Sensor response different from the ortho's:
+/// `out = 255 S(((gain in + offset) / 255)^gamma)`, where the tone curve `S`
+/// is the identity for `contrast = 0` and a logistic S-curve of slope
+/// `contrast` around mid-grey otherwise (rescaled to map 0 and 1 onto
+/// themselves): a camera's film-like tone curve.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Photometric {
     pub gain: f64,
     pub gamma: f64,
     pub offset_dn: f64,
+    pub contrast: f64,
 }
 
 impl Default for Photometric {
     fn default() -> Self {
-        Self { gain: 1.1, gamma: 0.9, offset_dn: 5.0 }
+        Self { gain: 1.1, gamma: 0.9, offset_dn: 5.0, contrast: 0.0 }
     }
+}
+
+impl Photometric {
+    /// The response to a grey level (before noise and clamping).
+    pub fn response(&self, x: f64) -> f64 {
+        let b = (self.gain * x + self.offset_dn).clamp(0.0, 255.0) / 255.0;
+        255.0 * tone(b.powf(self.gamma), self.contrast)
+    }
+}
+
+/// The logistic tone curve on [0, 1].
+fn tone(x: f64, contrast: f64) -> f64 {
+    if contrast == 0.0 {
+        return x;
+    }
+    let sig = |t: f64| 1.0 / (1.0 + (-contrast * (t - 0.5)).exp());
+    let (lo, hi) = (sig(0.0), sig(1.0));
+    (sig(x) - lo) / (hi - lo)
 }
 
 /// Aerosol haze in an exponential atmosphere: terrain is attenuated along the
@@ -211,6 +292,8 @@ impl Realism {
     /// Every effect on with its defaults (for tests and benchmarks).
     pub fn all_on() -> Self {
         Self {
+            spectral: Some(Spectral::default()),
+            brightness_field: Some(BrightnessField::default()),
             photometric: Some(Photometric::default()),
             haze: Some(Haze::default()),
             noise: Some(SensorNoise::default()),
@@ -227,10 +310,21 @@ impl Realism {
 
     /// Checks every field of the effects that are on; the error names the field.
     pub fn validate(&self) -> Result<(), String> {
+        if let Some(sp) = &self.spectral {
+            for (k, w) in sp.weights.iter().enumerate() {
+                within(&format!("spectral.weights[{k}]"), *w, 0.0, 1e3)?;
+            }
+            positive("spectral.weights (sum)", sp.weights.iter().sum())?;
+        }
+        if let Some(b) = &self.brightness_field {
+            within("brightness_field.amplitude", b.amplitude, 0.0, 0.9)?;
+            within("brightness_field.scale_m", b.scale_m, 10.0, 1e7)?;
+        }
         if let Some(p) = &self.photometric {
             positive("photometric.gain", p.gain)?;
             positive("photometric.gamma", p.gamma)?;
             within("photometric.offset_dn", p.offset_dn, -255.0, 255.0)?;
+            within("photometric.contrast", p.contrast, 0.0, 50.0)?;
         }
         if let Some(h) = &self.haze {
             within("haze.beta_sl_per_km", h.beta_sl_per_km, 0.0, 10.0)?;
@@ -302,6 +396,9 @@ pub fn apply(realism: &Realism, img: &mut [f32], geo: &FrameGeometry, frame: &Fr
     assert_eq!(geo.range_m.len(), w * h, "range_m size");
     assert_eq!(geo.hit_height_m.len(), w * h, "hit_height_m size");
 
+    if let Some(b) = &realism.brightness_field {
+        brightness_field(b, img, geo, seed);
+    }
     if realism.haze.is_some() || realism.clouds.is_some() {
         atmosphere(realism.haze.as_ref(), realism.clouds.as_ref(), img, geo, frame.t, seed);
     }
@@ -631,6 +728,33 @@ fn value_noise3(seed: u64, p: &Vector3<f64>) -> f64 {
         )
     };
     lerp(plane(iz), plane(iz + 1), sz)
+}
+
+/// The ground brightness field, evaluated every 8 px at the ground point the
+/// node's pixel sees (factor 1 where it sees sky), interpolated, applied to
+/// terrain pixels.
+fn brightness_field(b: &BrightnessField, img: &mut [f32], geo: &FrameGeometry, seed: u64) {
+    let (w, h) = (geo.camera.width as usize, geo.camera.height as usize);
+    let origin = geo.pose.position.0;
+    let grid = CoarseGrid::build(w, h, 8, 1, |px, out| {
+        let (u, v) = ((px.u as usize).min(w - 1), (px.v as usize).min(h - 1));
+        let range = geo.range_m[v * w + u] as f64;
+        out[0] = if range.is_finite() {
+            let dir = geo.pose.q_ecef_cam * geo.camera.ray(Pixel::new(u as f64, v as f64));
+            b.factor(&(origin + dir * range), seed) as f32
+        } else {
+            1.0
+        };
+    });
+    img.par_chunks_mut(w).zip(geo.range_m.par_chunks(w)).enumerate().for_each(|(v, (row, range))| {
+        let mut f = vec![0f32; w];
+        grid.row::<1>(v, &mut f);
+        for ((px, f), r) in row.iter_mut().zip(&f).zip(range) {
+            if r.is_finite() {
+                *px *= f;
+            }
+        }
+    });
 }
 
 /// Cloud opacity and distance (m; infinite where the ray misses the sheet)
@@ -967,6 +1091,7 @@ struct Response {
     gain: f32,
     offset: f32,
     gamma: f32,
+    contrast: f64,
     table: Vec<f32>,
 }
 
@@ -975,15 +1100,21 @@ impl Response {
     const EXACT_BELOW: f32 = 4.0;
 
     fn new(p: &Photometric) -> Self {
-        let curve = |b: f64| 255.0 * (b / 255.0).powf(p.gamma);
+        let curve = |b: f64| 255.0 * tone((b / 255.0).powf(p.gamma), p.contrast);
         let table = (0..=Self::N).map(|k| curve(k as f64 * 255.0 / Self::N as f64) as f32).collect();
-        Self { gain: p.gain as f32, offset: p.offset_dn as f32, gamma: p.gamma as f32, table }
+        Self {
+            gain: p.gain as f32,
+            offset: p.offset_dn as f32,
+            gamma: p.gamma as f32,
+            contrast: p.contrast,
+            table,
+        }
     }
 
     fn eval(&self, x: f32) -> f32 {
         let b = (self.gain * x + self.offset).clamp(0.0, 255.0);
         if b < Self::EXACT_BELOW {
-            return 255.0 * (b / 255.0).powf(self.gamma);
+            return 255.0 * tone((b / 255.0).powf(self.gamma) as f64, self.contrast) as f32;
         }
         let f = b * (Self::N as f32 / 255.0);
         let k = (f as usize).min(Self::N - 1);
@@ -1183,6 +1314,64 @@ mod tests {
             let out = s.run(&r, input, &frame(0.0), 1);
             assert!((out[7] - want).abs() < 2e-3, "{input}: {} vs {want}", out[7]);
         }
+    }
+
+    #[test]
+    fn tone_curve_is_a_monotone_s_curve() {
+        let s = small_scene();
+        let p = Photometric { gain: 1.0, gamma: 1.0, offset_dn: 0.0, contrast: 8.0 };
+        let r = only(|r| r.photometric = Some(p.clone()));
+        // Fixed points 0, mid-grey and 255; darker below, brighter above; the
+        // closed form 255 (sig(x) - sig(0)) / (sig(1) - sig(0)).
+        let sig = |t: f64| 1.0 / (1.0 + (-8.0 * (t - 0.5)).exp());
+        let mut last = -1.0;
+        for input in [0.0, 2.0, 30.0, 64.0, 127.5, 190.0, 250.0, 255.0] {
+            let out = s.run(&r, input as f32, &frame(0.0), 1)[7] as f64;
+            let want = 255.0 * (sig(input / 255.0) - sig(0.0)) / (sig(1.0) - sig(0.0));
+            assert!((out - want).abs() < 0.02, "{input}: {out} vs {want}");
+            assert!((out - p.response(input)).abs() < 0.02);
+            assert!(out > last, "monotone at {input}");
+            last = out;
+            if input > 10.0 && input < 120.0 {
+                assert!(out < input - 5.0, "{input} -> {out}: shadows darker");
+            }
+            if input > 135.0 && input < 245.0 {
+                assert!(out > input + 5.0, "{input} -> {out}: highlights brighter");
+            }
+        }
+        assert!((p.response(127.5) - 127.5).abs() < 1e-9 && p.response(255.0) == 255.0);
+    }
+
+    #[test]
+    fn brightness_field_is_slow_bounded_and_fixed_on_the_ground() {
+        let b = BrightnessField { amplitude: 0.2, scale_m: 4000.0 };
+        let p0 = Geodetic::new(35.0, -106.0, 1500.0).to_ecef().0;
+        let f = LocalFrame::at(Geodetic::new(35.0, -106.0, 1500.0));
+        let east = f.vector_to_ecef(&Vector3::x());
+        // Bounded by the amplitude, varying over km, nearly constant over 10 m.
+        let vals: Vec<f64> = (0..400).map(|k| b.factor(&(p0 + east * (k as f64 * 100.0)), 5)).collect();
+        let (lo, hi) = vals.iter().fold((f64::MAX, f64::MIN), |(l, h), v| (l.min(*v), h.max(*v)));
+        assert!(lo >= 0.8 - 1e-12 && hi <= 1.2 + 1e-12, "{lo} {hi}");
+        assert!(hi - lo > 0.1, "the field varies over 40 km: {lo}..{hi}");
+        let step = vals.windows(2).map(|w| (w[1] - w[0]).abs()).fold(0.0, f64::max);
+        assert!(step < 0.05, "slow: {step} per 100 m");
+        assert!((b.factor(&(p0 + east * 10.0), 5) - b.factor(&p0, 5)).abs() < 2e-3);
+        assert_ne!(b.factor(&p0, 5), b.factor(&p0, 6), "seeded");
+        // Through apply: terrain pixels scaled by the factor of the ground point
+        // they see, sky untouched; two poses seeing the same ground agree.
+        let mut s = small_scene();
+        s.range[3] = f32::NAN;
+        let r = only(|r| r.brightness_field = Some(b.clone()));
+        let out = s.run(&r, 100.0, &frame(0.0), 5);
+        assert_eq!(out[3], 100.0);
+        let (w, centre) = (64, 24 * 64 + 32);
+        let ray = s.pose.ray(&s.cam, Pixel::new(32.0, 24.0));
+        let ground = ray.origin.0 + ray.direction * s.range[centre] as f64;
+        assert!((out[centre] as f64 - 100.0 * b.factor(&ground, 5)).abs() < 0.05, "{}", out[centre]);
+        let moved = Scene::new(CameraModel::from_fov(64, 48, 60.0), nadir(35.0, -106.0, 2600.0), 1500.0);
+        let out2 = moved.run(&r, 100.0, &frame(0.0), 5);
+        assert!((out2[centre] - out[centre]).abs() < 0.05, "{} vs {}", out2[centre], out[centre]);
+        assert!(out.iter().skip(w).any(|v| (v - 100.0).abs() > 1e-3));
     }
 
     #[test]

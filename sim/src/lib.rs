@@ -92,7 +92,11 @@ pub fn simulate(opts: &SimOptions, cancel: &AtomicBool) -> Result<SimReport, Sim
     let t_start = Instant::now();
     let scenario = Scenario::load(&opts.scenario)?;
     check_out(&opts.out)?;
-    let scene = load_scene(&opts.sources)?;
+    let sources = SceneSources {
+        spectral_weights: scenario.realism.spectral.as_ref().map(|s| s.normalized()),
+        ..opts.sources.clone()
+    };
+    let scene = load_scene(&sources)?;
     let e = &scene.ortho_extent;
     let (lat, lon) = match scenario.origin {
         Some(o) => (o.lat, o.lon),

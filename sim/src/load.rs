@@ -23,6 +23,9 @@ pub struct SceneSources {
     pub dems: Vec<PathBuf>,
     pub dem_vertical: Option<DemVertical>,
     pub geoid: Option<PathBuf>,
+    /// The camera's own weights of the luminance's red, green and blue bands
+    /// (scenario `realism.spectral`), instead of the builder's Rec. 601 luma.
+    pub spectral_weights: Option<[f32; 3]>,
 }
 
 /// Nodes of the latitude/longitude -> ortho pixel grid per side: exact PROJ
@@ -35,7 +38,22 @@ pub fn load_scene(src: &SceneSources) -> Result<Scene, SimError> {
     let t0 = std::time::Instant::now();
     let (ds, info) = source::inspect(&src.ortho)?;
     source::check_not_all_nodata(&ds, &src.ortho)?;
-    let lum = luminance_for(&ds, &info, src.ortho_bands.as_deref())?;
+    let mut lum = luminance_for(&ds, &info, src.ortho_bands.as_deref())?;
+    if let Some(weights) = src.spectral_weights {
+        if lum.bands.len() != 3 {
+            return Err(SimError::Input {
+                path: src.ortho.clone(),
+                reason: format!(
+                    "realism.spectral needs a luminance made of three bands (red, green, blue; see \
+                     --ortho-bands), this one uses {}",
+                    lum.bands.len()
+                ),
+            });
+        }
+        for (band, w) in lum.bands.iter_mut().zip(weights) {
+            band.1 = w;
+        }
+    }
     let reader = OrthoReader::open(&src.ortho, &lum)?;
     let (w, h) = (info.width, info.height);
     if w.checked_mul(h).is_none_or(|n| n > 1_500_000_000) {

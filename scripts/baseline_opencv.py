@@ -13,13 +13,16 @@ Usage:
       [--init-sigma-m 1200] [--init-sigma-deg 2] [--ncc mask|interior]
 
 Per image:
-  1. Pose guess: position of the last accepted fix, moved by the velocity of
-     the last two fixes; attitude carried by the gyro (imu.csv, exact
-     quaternion integration per sample, Earth rate taken out, camera mounting
-     q_cam_imu from camera.json), or held with --no-gyro. Uncertainty: the
-     init sigmas at the start (the defaults, 1200 m and 2 deg, searched to
-     2.5 sigma, cover a 3 km / 5 deg seed), after a fix 10 m / 0.05 deg,
-     growing by 20 m/s (velocity error) and 0.01 deg/s (gyro) without one.
+  1. Pose guess: position of the last accepted fix, moved by the velocity
+     (least-squares slope of the fixes of the last 2 s); attitude carried by
+     the gyro (imu.csv, exact quaternion integration per sample, Earth rate
+     taken out, camera mounting q_cam_imu from camera.json), or held with
+     --no-gyro. Uncertainty: the init sigmas at the start (the defaults,
+     1200 m and 2 deg, searched to 2.5 sigma, cover a 3 km / 5 deg seed),
+     10 m / 0.05 deg after a fix, plus the velocity's error over the gap
+     (20 m/s once the fixes span 1 s, 300 m/s before) and 0.01 deg/s of gyro
+     drift. After 8 frames in a row without a fix the search is as wide as at
+     the start again, without the velocity.
   2. Footprint: image corners (and edge midpoints, centre) projected onto the
      WGS84 ellipsoid raised to the terrain height (first frame: the median
      template height around the init position; then the mean height of the
@@ -42,7 +45,9 @@ Per image:
      <= 16 px, as long as templates of the coarsest database level span
      >= 12 px there, the reduced image keeps >= 48 rows and >= 20 templates
      are in view), then refined at full resolution (via level 1 from level 3)
-     with a 6 px radius; minMaxLoc, parabola sub-pixel peak, peaks below 0.5
+     with a 6 px radius (a coarse stage that ends without a pose of
+     --min-inliers is tried again one pyramid level finer); minMaxLoc,
+     parabola sub-pixel peak, peaks below 0.5
      or not distinct from the second peak are dropped.
      Acquisition (no fix yet, or a search radius above a quarter of the focal
      length): the radius is not capped at fx/4 but at 4 image sizes, the
@@ -57,9 +62,9 @@ Per image:
      matches.
   7. Acceptance: at least --min-inliers inliers, and a height within
      --max-height-jump of the guess plus what the time since the last fix
-     allows (3 x 20 m/s once a velocity is known, 300 m/s before, and 20 m/s^2
-     of unmodelled acceleration), so a long gap never locks the gate;
-     otherwise the guess is reported as `propagated`.
+     allows (3 x the velocity error above, and 20 m/s^2 of unmodelled
+     acceleration), so a long gap never locks the gate; otherwise the guess
+     is reported as `propagated`.
 
 Writes poses.csv in the flight format (t,lat,lon,h,qw,qx,qy,qz,status,inliers,
 matches,ms); ms is the wall time from the decoded grey image to the pose, as
@@ -551,29 +556,32 @@ class Baseline:
         # Coarse stage, then refining stages at full resolution (and level 1 in
         # between when starting from level 3); an acquisition is always refined
         # (the refinement re-finds the landmarks from the acquired pose: a check).
-        stages = [(k, int(math.ceil(radius_full / (1 << k))), acq, margin_px, cap)]
-        if k >= 3:
-            stages.append((1, FINE_RADIUS_PX, False, 0.0, self.max_landmarks))
-        if k > 0 or acq:
-            stages.append((0, max(FINE_RADIUS_PX, (1 << min(k, 2)) + 2), False, 0.0, self.max_landmarks))
-        first, rest = stages[0], stages[1:]
-        res, n = self.stage(pyr[first[0]], first[0], guess, box, gsd_range, *first[1:])
-        if res is None:
-            return None, n
-        best, best_n = None, n
-        for r in (res if first[2] else [res]):
-            out = r
-            for level, radius, vote, margin, cap_l in rest:
-                fp = self.footprint(out[0])
-                if fp is None:
-                    out = None
-                    break
-                fp_box, _, _, fp_range = fp
-                out, n = self.stage(pyr[level], level, out[0], fp_box, fp_range, radius, vote, margin, cap_l)
-                if out is None:
-                    break
-            if out is not None and (best is None or out[1] > best[1]):
-                best, best_n = out, n
+        # A coarse stage that finds no pose is tried again one level finer.
+        best, best_n = None, 0
+        for kk in range(k, -1, -1):
+            stages = [(kk, int(math.ceil(radius_full / (1 << kk))), acq, margin_px, cap)]
+            if kk >= 3:
+                stages.append((1, FINE_RADIUS_PX, False, 0.0, self.max_landmarks))
+            if kk > 0 or acq:
+                stages.append((0, max(FINE_RADIUS_PX, (1 << min(kk, 2)) + 2), False, 0.0, self.max_landmarks))
+            first, rest = stages[0], stages[1:]
+            res, n = self.stage(pyr[first[0]], first[0], guess, box, gsd_range, *first[1:])
+            best_n = max(best_n, n)
+            for r in (res if first[2] else [res]) if res is not None else []:
+                out = r
+                for level, radius, vote, margin, cap_l in rest:
+                    fp = self.footprint(out[0])
+                    if fp is None:
+                        out = None
+                        break
+                    fp_box, _, _, fp_range = fp
+                    out, n = self.stage(pyr[level], level, out[0], fp_box, fp_range, radius, vote, margin, cap_l)
+                    if out is None:
+                        break
+                if out is not None and (best is None or out[1] > best[1]):
+                    best, best_n = out, n
+            if best is not None and best[1] >= self.min_inliers:
+                break
         return best, best_n
 
     def level_candidates(self, box, gsd_range, level):

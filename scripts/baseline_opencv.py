@@ -1,24 +1,40 @@
 #!/usr/bin/env python3
 """OpenCV baseline of the trn navigator: the same terrain relative navigation
-pipeline written with stock OpenCV, as the benchmark to beat.
+pipeline written with stock OpenCV, as the benchmark to beat. Meant to be what
+a competent engineer would write in a few days, not a handicapped version: it
+gets its own landmark database with a template size chosen for the camera
+(scripts/bench_nav.sh builds it with trn build; see the rule there), as many
+landmarks per frame as trn navigate, every database level that fits, the
+gyro-propagated guess and a wide first search for a poor initial guess.
 
 Usage:
   baseline_opencv.py --db DB --flight DIR --out poses.csv [--rate HZ] [--no-gyro]
+      [--max-landmarks 300] [--min-inliers 8] [--max-height-jump 450]
+      [--init-sigma-m 1200] [--init-sigma-deg 2] [--ncc mask|interior]
 
 Per image:
-  1. Pose guess: position of the last accepted fix, moved by the velocity of
-     the last two fixes; attitude carried by the gyro (imu.csv, exact
-     quaternion integration per sample, Earth rate taken out, camera mounting
-     q_cam_imu from camera.json), or held with --no-gyro.
+  1. Pose guess: position of the last accepted fix, moved by the velocity
+     (least-squares slope of the fixes of the last 2 s); attitude carried by
+     the gyro (imu.csv, exact quaternion integration per sample, Earth rate
+     taken out, camera mounting q_cam_imu from camera.json), or held with
+     --no-gyro. Uncertainty: the init sigmas at the start (the defaults,
+     1200 m and 2 deg, searched to 2.5 sigma, cover a 3 km / 5 deg seed),
+     10 m / 0.05 deg after a fix, plus the velocity's error over the gap
+     (20 m/s once the fixes span 1 s, 300 m/s before) and 0.01 deg/s of gyro
+     drift. After 8 frames in a row without a fix the search is as wide as at
+     the start again, without the velocity.
   2. Footprint: image corners (and edge midpoints, centre) projected onto the
      WGS84 ellipsoid raised to the terrain height (first frame: the median
      template height around the init position; then the mean height of the
      last fix's inliers); corners that see sky or ground steeper than 75 deg
-     from the normal walk toward the opposite corner.
+     from the normal walk toward the opposite corner. Also the finest and
+     coarsest ground resolution over these points.
   3. Landmarks: templates in the lat/lon box from the templates_rtree R*Tree,
-     at the level whose GSD best matches the image GSD (of the pyramid level
-     searched), spread over an 8 x 6 grid of image cells, best quality first,
-     80 at most.
+     of every level that may fit; each is kept where its level is the best
+     fit for the ground resolution at its own place (range and incidence; the
+     image GSD times the pyramid level's scale), or one level finer when it
+     still spans >= 14 image pixels there; spread over an 8 x 6 grid of image
+     cells, best quality first, --max-landmarks (300, as trn navigate) at most.
   4. Prediction: each template is warped into the image with
      cv2.warpPerspective, by the homography of its four corner ground points
      (terrain plane) projected with cv2.projectPoints (with distortion); a
@@ -26,21 +42,35 @@ Per image:
   5. Correlation: cv2.matchTemplate(TM_CCOEFF_NORMED, masked) over a search
      window sized from the pose uncertainty (2.5 sigma), on a 2x-reduced image
      pyramid level when the window is wide (the coarsest level with a radius
-     <= 16 px, as long as templates stay >= ~13 px and >= 24 of them are in
-     view), then again at full resolution with a 6 px radius;
-     minMaxLoc, parabola sub-pixel peak, peaks below 0.5 or not distinct from
-     the second peak are dropped.
-  6. Pose: cv2.solvePnPRansac(SOLVEPNP_AP3P, 2 px, confidence 0.999) on the
-     template centres in a local ECEF frame (offset by the guess position),
-     cv2.solvePnPRefineLM on the inliers, re-classification of all matches.
-  7. Acceptance: at least 8 inliers and a height change of at most 450 m from
-     the last fix; otherwise the guess is reported as `propagated`.
+     <= 16 px, as long as templates of the coarsest database level span
+     >= 12 px there, the reduced image keeps >= 48 rows and >= 20 templates
+     are in view), then refined at full resolution (via level 1 from level 3)
+     with a 6 px radius (a coarse stage that ends without a pose of
+     --min-inliers is tried again one pyramid level finer); minMaxLoc,
+     parabola sub-pixel peak, peaks below 0.5
+     or not distinct from the second peak are dropped.
+     Acquisition (no fix yet, or a search radius above a quarter of the focal
+     length): the radius is not capped at fx/4 but at 4 image sizes, the
+     footprint box is widened by it, landmarks predicted up to that far outside
+     the image are correlated too (1500 at most), and the matches vote on one
+     common image shift (the densest cluster, radius 6% of the image diagonal)
+     before RANSAC (5000 iterations); the full-resolution refinement from the
+     acquired pose checks it.
+  6. Pose: cv2.solvePnPRansac(SOLVEPNP_AP3P, 2 px x level scale, confidence
+     0.999) on the template centres in a local ECEF frame (offset by the guess
+     position), cv2.solvePnPRefineLM on the inliers, re-classification of all
+     matches.
+  7. Acceptance: at least --min-inliers inliers, and a height within
+     --max-height-jump of the guess plus what the time since the last fix
+     allows (3 x the velocity error above, and 20 m/s^2 of unmodelled
+     acceleration), so a long gap never locks the gate; otherwise the guess
+     is reported as `propagated`.
 
 Writes poses.csv in the flight format (t,lat,lon,h,qw,qx,qy,qz,status,inliers,
 matches,ms); ms is the wall time from the decoded grey image to the pose, as
 trn navigate measures it. Also writes matches.csv next to poses.csv (one row per
 correlation match of the final stage, as trn navigate does). Single-threaded
-(cv2.setNumThreads(1)).
+(cv2.setNumThreads(1)). Never reads truth.csv.
 """
 
 import argparse
@@ -264,9 +294,18 @@ class LandmarkDb:
     def level_for(self, gsd):
         return min(self.levels, key=lambda lg: abs(math.log(lg[1] / gsd)))[0]
 
-    def candidates(self, box, level):
+    def level_index(self, gsd):
+        """Database levels best fitting an array of ground resolutions."""
+        g = np.array([lg[1] for lg in self.levels])
+        return np.abs(np.log(np.asarray(gsd, dtype=np.float64)[:, None] / g[None, :])).argmin(axis=1)
+
+    def template_size(self):
+        row = self.conn.execute("SELECT width_px FROM templates LIMIT 1").fetchone()
+        return int(row[0]) if row else 32
+
+    def candidates(self, box, lo, hi):
         min_lon, min_lat, max_lon, max_lat = box
-        return self.conn.execute(self.CANDIDATES, (min_lon, max_lon, min_lat, max_lat, level, level)).fetchall()
+        return self.conn.execute(self.CANDIDATES, (min_lon, max_lon, min_lat, max_lat, lo, hi)).fetchall()
 
     def pixels(self, fids):
         q = "SELECT fid, pixels FROM templates WHERE fid IN (%s)" % ",".join("?" * len(fids))
@@ -277,22 +316,34 @@ class LandmarkDb:
 
 PYRAMID_LEVELS = 4
 MAX_RADIUS_PX = 16       # largest search radius at one pyramid level (when the templates allow)
-MIN_COARSE_LANDMARKS = 24  # coarse levels: at least this many templates in view
-MAX_TEMPLATE_SHRINK = 2.5  # coarse levels: image GSD at most this times the coarsest template GSD
-FINE_RADIUS_PX = 6       # full-resolution search after a coarse stage
+MIN_COARSE_LANDMARKS = 20  # coarse levels: at least this many templates in view
+MIN_COARSE_TEMPLATE_PX = 12  # coarse levels: templates of the coarsest database level span at least this
+MIN_COARSE_IMAGE_PX = 48   # coarse levels: the reduced image keeps at least this many rows
+FINE_RADIUS_PX = 6       # search radius of each refining stage after a coarse one (at least)
+MIN_FINER_TEMPLATE_PX = 14  # a template one level finer than the local fit is used when it spans this
 ALPHA_MAX_DEG = 75.0
 GRID = (8, 6)
-MAX_LANDMARKS = 80
 MAX_PATCH = 63
 MIN_PEAK = 0.5
 MAX_SECOND_RATIO = 0.92  # second peak (outside the main lobe) / peak
 RANSAC_PX = 2.0
-MIN_INLIERS = 8
-MAX_HEIGHT_JUMP_M = 450.0
-INIT_SIGMA_M, INIT_SIGMA_DEG = 300.0, 2.0
-VELOCITY_SIGMA_M_S = 20.0
-GYRO_DRIFT_DEG_S = 0.01
 FIX_SIGMA_M, FIX_SIGMA_DEG = 10.0, 0.05
+VELOCITY_SIGMA_M_S = 20.0  # error of the velocity from fixes spanning >= 1 s (1 sigma)
+VELOCITY_MIN_SPAN_S = 1.0  # fixes spanning less: velocity error UNKNOWN_SPEED_M_S
+UNKNOWN_SPEED_M_S = 300.0  # velocity error before a velocity is known (fixes spanning < 1 s)
+MAX_ACCEL_M_S2 = 20.0      # height-jump gate: unmodelled acceleration over the gap
+GYRO_DRIFT_DEG_S = 0.01
+VELOCITY_WINDOW_S = 2.0    # velocity: least-squares slope of the fixes of the last 2 s
+LOST_FRAMES = 8            # this many frames in a row without a fix: search as at the start
+# Acquisition (no fix yet, or an uncertainty wider than a quarter of the focal
+# length): the whole uncertainty is searched, landmarks predicted outside the
+# image by up to the search radius are correlated too, and the matches vote on
+# one common image shift before RANSAC.
+ACQ_MAX_LANDMARKS = 1500
+ACQ_MAX_MARGIN = 4.0       # search radius at most this many image sizes
+ACQ_VOTE_RADIUS = 0.06     # shift cluster radius, share of the image diagonal
+ACQ_RANSAC_ITERATIONS = 5000
+ACQ_CLUSTERS = 3           # shift clusters tried, each refined; the most inliers wins
 
 
 class Pose:
@@ -308,18 +359,26 @@ class Pose:
 
 
 class Baseline:
-    def __init__(self, db, cam, imu_t, imu_w, init, use_gyro, ncc_mode="mask"):
-        self.db, self.cam, self.use_gyro, self.ncc_mode = db, cam, use_gyro, ncc_mode
+    def __init__(self, db, cam, imu_t, imu_w, init, args):
+        self.db, self.cam, self.use_gyro, self.ncc_mode = db, cam, not args.no_gyro, args.ncc
+        self.max_landmarks, self.min_inliers, self.max_height_jump = args.max_landmarks, args.min_inliers, args.max_height_jump
         self.imu_t, self.imu_w = imu_t, imu_w
         self.t = float(init["t"])
         self.pose = Pose(geodetic_to_ecef(init["lat"], init["lon"], init["h"]), init["q_ecef_cam"])
-        self.sigma_m = INIT_SIGMA_M
-        self.sigma_rad = math.radians(INIT_SIGMA_DEG)
+        self.sigma_m = args.init_sigma_m
+        self.sigma_rad = math.radians(args.init_sigma_deg)
         self.last_fix = None  # (t, Pose)
         self.velocity = np.zeros(3)
+        self.have_velocity = False
+        self.fixes = []  # (t, ECEF position) of the recent fixes
+        self.velocity_sigma = UNKNOWN_SPEED_M_S
+        self.misses = 0  # frames in a row without a fix
+        self.init_sigma = (args.init_sigma_m, math.radians(args.init_sigma_deg))
         self.terrain_h = db.terrain_height_near(float(init["lat"]), float(init["lon"]), float(init["h"]))
         self.q_imu_cam = qconj(cam.q_cam_imu)
         self.f = min(cam.fx, cam.fy)
+        self.tmpl_px = db.template_size()
+        self.level_gsd = np.array([g for _, g in db.levels])
 
     # -- pose guess --
     def guess(self, t):
@@ -329,11 +388,13 @@ class Baseline:
             q_cam_imu = self.cam.q_cam_imu
             q_ecef_imu = qmul(q, q_cam_imu)
             q = qmul(propagate_attitude(q_ecef_imu, self.t, t, self.imu_t, self.imu_w), qconj(q_cam_imu))
-        return Pose(self.pose.pos + self.velocity * dt, q)
+        g = Pose(self.pose.pos + self.velocity * dt, q)
+        g.t = t
+        return g
 
     def carry(self, t, g):
         dt = max(t - self.t, 0.0)
-        self.sigma_m += VELOCITY_SIGMA_M_S * dt
+        self.sigma_m += self.velocity_sigma * dt
         if self.use_gyro:
             self.sigma_rad += math.radians(GYRO_DRIFT_DEG_S) * dt
         else:
@@ -352,7 +413,10 @@ class Baseline:
             return None
         return hit, math.degrees(math.acos(min(cos_inc, 1.0))), float(np.linalg.norm(hit - pose.pos))
 
-    def footprint(self, pose):
+    def footprint(self, pose, margin_m=0.0):
+        """Lat/lon box of the image on the terrain (widened by margin_m), the
+        ground resolution at the centre, its range and the finest and coarsest
+        ground resolution over the corners, edge midpoints and centre."""
         h = self.terrain_h
         if ecef_to_geodetic(pose.pos)[2] <= h:
             return None
@@ -368,7 +432,7 @@ class Baseline:
                 p = a + step * k
                 g = self.ground(pose, p, h)
                 if g is not None and g[1] <= ALPHA_MAX_DEG:
-                    hit = (p, g[0])
+                    hit = (p, g)
                     break
                 k += 10.0
             if hit is None:
@@ -379,17 +443,24 @@ class Baseline:
             mid = 0.5 * (walked[i] + walked[(i + 1) % 4])
             g = self.ground(pose, mid, h)
             if g is not None and g[1] <= ALPHA_MAX_DEG:
-                pts.append(g[0])
+                pts.append(g)
         centre = self.ground(pose, np.array([self.cam.cx, self.cam.cy]), h)
         if centre is None or centre[1] > ALPHA_MAX_DEG:
             centre = self.ground(pose, 0.25 * sum(walked), h)
         if centre is None:
             return None
-        lls = [ecef_to_geodetic(p) for p in pts]
+        pts.append(centre)
+
+        def gsd_of(g):
+            return g[2] / self.f / math.sqrt(max(math.cos(math.radians(g[1])), 0.2))
+
+        gsds = [gsd_of(g) for g in pts]
+        lls = [ecef_to_geodetic(g[0]) for g in pts]
         lats, lons = [x[0] for x in lls], [x[1] for x in lls]
-        box = (min(lons), min(lats), max(lons), max(lats))
-        gsd = centre[2] / self.f / math.sqrt(max(math.cos(math.radians(centre[1])), 0.2))
-        return box, gsd, centre[2]
+        dlat = margin_m / 111320.0
+        dlon = margin_m / (111320.0 * max(math.cos(math.radians(np.mean(lats))), 0.05))
+        box = (min(lons) - dlon, min(lats) - dlat, max(lons) + dlon, max(lats) + dlat)
+        return box, gsd_of(centre), centre[2], (min(gsds), max(gsds))
 
     # -- one frame --
     def process(self, t, img):
@@ -399,11 +470,29 @@ class Baseline:
         status, inliers, records = "propagated", 0, []
         if sol is not None:
             pose, inliers, h_mean, records = sol
-            jump = abs(ecef_to_geodetic(self.last_fix[1].pos)[2] - ecef_to_geodetic(pose.pos)[2]) if self.last_fix else 0.0
-            if inliers >= MIN_INLIERS and jump <= MAX_HEIGHT_JUMP_M:
-                if self.last_fix is not None and t - self.last_fix[0] > 1e-6:
-                    self.velocity = (pose.pos - self.last_fix[1].pos) / (t - self.last_fix[0])
+            ok = inliers >= self.min_inliers
+            if ok and self.last_fix is not None:
+                # Height gate against the guess (last fix moved by the velocity),
+                # widened with the time since that fix so a long gap never locks out.
+                dt = max(t - self.last_fix[0], 0.0)
+                speed = 3.0 * self.velocity_sigma if self.have_velocity else UNKNOWN_SPEED_M_S
+                tol = self.max_height_jump + speed * dt + 0.5 * MAX_ACCEL_M_S2 * dt * dt
+                ok = abs(ecef_to_geodetic(g.pos)[2] - ecef_to_geodetic(pose.pos)[2]) <= tol
+            if ok:
+                # Velocity: least-squares slope over the recent fixes (the
+                # difference of two fixes a frame apart is mostly their noise).
+                self.fixes = [(tf, pf) for tf, pf in self.fixes if t - tf <= VELOCITY_WINDOW_S] + [(t, pose.pos)]
+                if len(self.fixes) >= 2:
+                    ts = np.array([tf for tf, _ in self.fixes])
+                    ps = np.array([pf for _, pf in self.fixes])
+                    dt_ = ts - ts.mean()
+                    if float(dt_ @ dt_) > 1e-9:
+                        self.velocity = dt_ @ (ps - ps.mean(axis=0)) / float(dt_ @ dt_)
+                        self.have_velocity = True
+                span = self.fixes[-1][0] - self.fixes[0][0]
+                self.velocity_sigma = VELOCITY_SIGMA_M_S if span >= VELOCITY_MIN_SPAN_S else UNKNOWN_SPEED_M_S
                 self.last_fix = (t, pose)
+                self.misses = 0
                 self.pose, self.t = pose, t
                 self.sigma_m, self.sigma_rad = FIX_SIGMA_M, math.radians(FIX_SIGMA_DEG)
                 self.terrain_h = h_mean
@@ -412,6 +501,14 @@ class Baseline:
                 self.carry(t, g)
         else:
             self.carry(t, g)
+        if status != "fix":
+            self.misses += 1
+            if self.misses % LOST_FRAMES == 0:
+                # Lost: search as wide as at the start, without the velocity.
+                self.sigma_m = max(self.sigma_m, self.init_sigma[0])
+                self.sigma_rad = max(self.sigma_rad, self.init_sigma[1])
+                self.velocity, self.have_velocity, self.fixes = np.zeros(3), False, []
+                self.velocity_sigma = UNKNOWN_SPEED_M_S
         ms = (time.perf_counter() - start) * 1e3
         return self.pose, status, inliers, n_matches, ms, sorted(records)
 
@@ -419,64 +516,130 @@ class Baseline:
         fp = self.footprint(guess)
         if fp is None:
             return None, 0
-        box, gsd, rng = fp
-        radius_full = min(2.5 * self.f * (self.sigma_rad + self.sigma_m / rng) + 3.0, 0.25 * self.f)
-        # Coarsest pyramid level whose search radius fits, but not so coarse
-        # that the templates shrink below ~13 px (then a wider search there).
+        _, gsd, rng, _ = fp
+        w, h = self.cam.width, self.cam.height
+        # Uncertainty of the guess: that of the last estimate, the velocity's
+        # error over the gap, the gyro's drift (--no-gyro: the attitude's
+        # uncertainty grows only over frames without a fix, in carry()).
+        gap = max(guess.t - self.t, 0.0)
+        sigma_m = self.sigma_m + self.velocity_sigma * gap
+        sigma_rad = self.sigma_rad + (math.radians(GYRO_DRIFT_DEG_S) * gap if self.use_gyro else 0.0)
+        radius_full = 2.5 * self.f * (sigma_rad + sigma_m / rng) + 3.0
+        # Acquisition: no fix yet, or an uncertainty too wide for tracking.
+        acq = self.last_fix is None or self.misses >= LOST_FRAMES or radius_full > 0.25 * self.f
+        if acq:
+            radius_full = min(radius_full, ACQ_MAX_MARGIN * max(w, h))
+            margin_px = radius_full
+            fp = self.footprint(guess, margin_px * gsd)
+            if fp is None:
+                return None, 0
+        else:
+            margin_px = 0.0
+        box, gsd, rng, gsd_range = fp
+        cap = ACQ_MAX_LANDMARKS if acq else self.max_landmarks
+        # Coarsest pyramid level whose search radius fits, as long as the
+        # templates of the coarsest database level still span
+        # MIN_COARSE_TEMPLATE_PX there and the reduced image keeps its size.
         coarsest_db_gsd = self.db.levels[-1][1]
         k = 0
         while (k + 1 < PYRAMID_LEVELS and radius_full / (1 << k) > MAX_RADIUS_PX
-               and gsd * (1 << (k + 1)) <= MAX_TEMPLATE_SHRINK * coarsest_db_gsd):
+               and self.tmpl_px * coarsest_db_gsd / (gsd * (1 << (k + 1))) >= MIN_COARSE_TEMPLATE_PX
+               and min(w, h) / (1 << (k + 1)) >= MIN_COARSE_IMAGE_PX):
             k += 1
-        # ... and with enough templates in view at that level's template GSD.
-        while k > 0 and len(self.select(guess, self.db.candidates(box, self.db.level_for(gsd * (1 << k))))) < MIN_COARSE_LANDMARKS:
+        # ... and with enough templates in view at that level.
+        while k > 0 and len(self.select(guess, self.level_candidates(box, gsd_range, k), k, margin_px, cap)) < MIN_COARSE_LANDMARKS:
             k -= 1
         pyr = [img]
         for _ in range(k):
             p = pyr[-1]
             pyr.append(cv2.resize(p[: p.shape[0] // 2 * 2, : p.shape[1] // 2 * 2], (p.shape[1] // 2, p.shape[0] // 2), interpolation=cv2.INTER_AREA))
-        stages = [(k, int(math.ceil(radius_full / (1 << k))))]
-        if k > 0:
-            stages.append((0, FINE_RADIUS_PX))
-        pose, out, n = guess, None, 0
-        for level, radius in stages:
-            res, n = self.stage(pyr[level], level, pose, box, gsd, radius)
-            if res is None:
-                return None, n
-            pose = res[0]
-            out = res
-        return out, n
+        # Coarse stage, then refining stages at full resolution (and level 1 in
+        # between when starting from level 3); an acquisition is always refined
+        # (the refinement re-finds the landmarks from the acquired pose: a check).
+        # A coarse stage that finds no pose is tried again one level finer.
+        best, best_n = None, 0
+        for kk in range(k, -1, -1):
+            stages = [(kk, int(math.ceil(radius_full / (1 << kk))), acq, margin_px, cap)]
+            if kk >= 3:
+                stages.append((1, FINE_RADIUS_PX, False, 0.0, self.max_landmarks))
+            if kk > 0 or acq:
+                stages.append((0, max(FINE_RADIUS_PX, (1 << min(kk, 2)) + 2), False, 0.0, self.max_landmarks))
+            first, rest = stages[0], stages[1:]
+            res, n = self.stage(pyr[first[0]], first[0], guess, box, gsd_range, *first[1:])
+            best_n = max(best_n, n)
+            for r in (res if first[2] else [res]) if res is not None else []:
+                out = r
+                for level, radius, vote, margin, cap_l in rest:
+                    fp = self.footprint(out[0])
+                    if fp is None:
+                        out = None
+                        break
+                    fp_box, _, _, fp_range = fp
+                    out, n = self.stage(pyr[level], level, out[0], fp_box, fp_range, radius, vote, margin, cap_l)
+                    if out is None:
+                        break
+                if out is not None and (best is None or out[1] > best[1]):
+                    best, best_n = out, n
+            if best is not None and best[1] >= self.min_inliers:
+                break
+        return best, best_n
 
-    def select(self, pose, cands):
-        """Candidates in view spread over image cells, best quality first."""
+    def level_candidates(self, box, gsd_range, level):
+        """Candidates of every database level that may fit the ground
+        resolutions of the view at pyramid level `level` (one finer included)."""
+        s = float(1 << level)
+        lo = max(self.db.level_for(gsd_range[0] * s) - 1, self.db.levels[0][0])
+        hi = self.db.level_for(gsd_range[1] * s)
+        return self.db.candidates(box, lo, hi)
+
+    def select(self, pose, cands, level=0, margin_px=0.0, cap=None):
+        """Candidates in view (the image widened by margin_px) whose level fits
+        the local ground resolution (or one finer, when its templates still
+        span MIN_FINER_TEMPLATE_PX), spread over image cells, best quality first."""
         if not cands:
             return []
+        cap = cap or self.max_landmarks
+        s = float(1 << level)
         arr = np.array([c[7:10] for c in cands])
         pc = pose.to_cam(arr)
         ok = pc[:, 2] > 0
         uv = np.full((len(cands), 2), -1e9)
         if ok.any():
             uv[ok] = cv2.projectPoints(pc[ok].reshape(-1, 1, 3), np.zeros(3), np.zeros(3), self.cam.K, self.cam.dist)[0].reshape(-1, 2)
+        # Local ground resolution at each landmark (range, incidence from the local up).
+        lat = np.radians(np.array([c[4] for c in cands]))
+        lon = np.radians(np.array([c[5] for c in cands]))
+        up = np.stack([np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)], axis=1)
+        view = pose.pos - arr
+        rng = np.linalg.norm(view, axis=1)
+        cos_inc = np.clip(np.einsum("ij,ij->i", view, up) / np.maximum(rng, 1e-9), 0.2, 1.0)
+        gsd_l = rng / self.f / np.sqrt(cos_inc) * s
+        best = self.level_gsd[self.db.level_index(gsd_l)]
+        tg = np.array([c[1] for c in cands])
+        tw = np.array([c[2] for c in cands])
+        fits = np.isclose(tg, best, rtol=1e-3) | (np.isclose(tg, 0.5 * best, rtol=1e-3) & (tw * tg / gsd_l >= MIN_FINER_TEMPLATE_PX))
         w, h = self.cam.width, self.cam.height
+        m = float(margin_px)
+        inside = ok & fits & (uv[:, 0] >= -m) & (uv[:, 0] < w + m) & (uv[:, 1] >= -m) & (uv[:, 1] < h + m)
         gx, gy = GRID
         cells = [[] for _ in range(gx * gy)]
-        for i, c in enumerate(cands):
+        for i in np.flatnonzero(inside):
+            c = cands[i]
             u, v = uv[i]
-            if not (ok[i] and 0 <= u < w and 0 <= v < h):
-                continue
             score = math.sqrt(max(c[13], 0.0)) * max(1.0 - c[14], 0.01)
-            cx, cy = min(int(u / w * gx), gx - 1), min(int(v / h * gy), gy - 1)
+            cx = min(max(int((u + m) / (w + 2 * m) * gx), 0), gx - 1)
+            cy = min(max(int((v + m) / (h + 2 * m) * gy), 0), gy - 1)
             cells[cy * gx + cx].append((score, i))
         for c in cells:
             c.sort(key=lambda x: -x[0])
         out, rnd = [], 0
-        while len(out) < MAX_LANDMARKS:
+        while len(out) < cap:
             anyc = False
             for c in cells:
                 if rnd < len(c):
                     out.append(c[rnd][1])
                     anyc = True
-                    if len(out) == MAX_LANDMARKS:
+                    if len(out) == cap:
                         break
             if not anyc:
                 break
@@ -592,16 +755,14 @@ class Baseline:
         # Patch top-left found at window (px - cx0 + sx, ...).
         return (wx0 + px + sx - cx0 - x0, wy0 + py + sy - cy0 - y0), peak
 
-    def stage(self, img, level, pose, box, gsd_full, radius):
+    def stage(self, img, level, pose, box, gsd_range, radius, vote=False, margin_px=0.0, cap=None):
         s = float(1 << level)
-        db_level = self.db.level_for(gsd_full * s)
-        cands = self.db.candidates(box, db_level)
-        chosen = self.select(pose, cands)
+        chosen = self.select(pose, self.level_candidates(box, gsd_range, level), level, margin_px, cap)
         if not chosen:
             return None, 0
         pix = self.db.pixels([c[0] for c in chosen])
         K_l = self.cam.K_level(level)
-        obs, pts, ids = [], [], []
+        obs, pred, pts, ids = [], [], [], []
         for c in chosen:
             w = self.warp(c, pix[c[0]], pose, K_l, level)
             if w is None:
@@ -613,6 +774,7 @@ class Baseline:
             (dx, dy), _ = m
             u_l, v_l = cpx[0] + dx, cpx[1] + dy
             obs.append(((u_l + 0.5) * s - 0.5, (v_l + 0.5) * s - 0.5))
+            pred.append(((cpx[0] + 0.5) * s - 0.5, (cpx[1] + 0.5) * s - 0.5))
             pts.append(c[7:10])
             ids.append(c[0])
         n = len(obs)
@@ -622,12 +784,38 @@ class Baseline:
         origin = np.round(pose.pos)
         P = np.array(pts, dtype=np.float64) - origin
         thr = RANSAC_PX * s
+        if not vote:
+            return self.pnp(obs, P, origin, pts, ids, thr, np.arange(n), 1000), n
+        # Acquisition: most matches of a wide search are wrong; the right ones
+        # share about one image shift (the pose error). The densest clusters
+        # of shifts (ACQ_CLUSTERS, greedily) each give a pose for the caller
+        # to refine; the refinement that finds the most inliers wins.
+        d = obs - np.array(pred)
+        rho = max(ACQ_VOTE_RADIUS * math.hypot(self.cam.width, self.cam.height), 4.0 * s)
+        near = np.linalg.norm(d[:, None, :] - d[None, :, :], axis=2) <= rho
+        free = np.ones(n, bool)
+        out = []
+        for _ in range(ACQ_CLUSTERS):
+            cnt = (near & free[None, :]).sum(axis=1) * free
+            if cnt.max() < 4:
+                break
+            centre = np.median(d[near[int(cnt.argmax())] & free], axis=0)
+            sub = np.flatnonzero((np.linalg.norm(d - centre, axis=1) <= rho) & free)
+            free[sub] = False
+            r = self.pnp(obs, P, origin, pts, ids, thr, sub, ACQ_RANSAC_ITERATIONS)
+            if r is not None:
+                out.append(r)
+        return out, n
+
+    def pnp(self, obs, P, origin, pts, ids, thr, sub, iterations):
+        """RANSAC P3P on the matches `sub`, LM refinement, re-classification of all matches."""
+        n = len(obs)
         ok, rvec, tvec, inl = cv2.solvePnPRansac(
-            P.reshape(-1, 1, 3), obs.reshape(-1, 1, 2), self.cam.K, self.cam.dist,
-            iterationsCount=1000, reprojectionError=thr, confidence=0.999, flags=cv2.SOLVEPNP_AP3P)
+            P[sub].reshape(-1, 1, 3), obs[sub].reshape(-1, 1, 2), self.cam.K, self.cam.dist,
+            iterationsCount=iterations, reprojectionError=thr, confidence=0.999, flags=cv2.SOLVEPNP_AP3P)
         if not ok or inl is None or len(inl) < 4:
-            return None, n
-        inl = inl.ravel()
+            return None
+        inl = sub[inl.ravel()]
         rvec, tvec = cv2.solvePnPRefineLM(P[inl].reshape(-1, 1, 3), obs[inl].reshape(-1, 1, 2), self.cam.K, self.cam.dist, rvec, tvec)
         # Re-classify all matches with the refined pose; refine once more on the new set.
         for it in range(2):
@@ -641,13 +829,13 @@ class Baseline:
                 break
         n_in = int(inlier.sum())
         if n_in < 4:
-            return None, n
+            return None
         R = cv2.Rodrigues(rvec)[0]  # camera <- local world
         pos = -R.T @ tvec.ravel() + origin
         new = Pose(pos, rot_to_q(R.T))
         h_mean = float(np.mean([ecef_to_geodetic(p)[2] for p in np.array(pts)[inlier]]))
         records = [(ids[i], obs[i, 0], obs[i, 1], proj[i, 0], proj[i, 1], min(res[i], 1e6), int(inlier[i])) for i in range(n)]
-        return (new, n_in, h_mean, records), n
+        return new, n_in, h_mean, records
 
 
 def main():
@@ -659,6 +847,14 @@ def main():
     ap.add_argument("--no-gyro", action="store_true", help="do not carry the attitude with the gyro")
     ap.add_argument("--ncc", choices=("mask", "interior"), default="mask",
                     help="correlate the whole warped template with a validity mask (default), or its largest valid centred square without one (faster)")
+    ap.add_argument("--max-landmarks", type=int, default=300, help="landmarks correlated per image when tracking (as trn navigate)")
+    ap.add_argument("--min-inliers", type=int, default=8, help="fewer RANSAC inliers reject the fix")
+    ap.add_argument("--max-height-jump", type=float, default=450.0,
+                    help="height gate (m) against the guess, widened with the time since the last fix")
+    ap.add_argument("--init-sigma-m", type=float, default=1200.0,
+                    help="position uncertainty of init.json (m, 1 sigma; searched to 2.5 sigma)")
+    ap.add_argument("--init-sigma-deg", type=float, default=2.0,
+                    help="attitude uncertainty of init.json (deg, 1 sigma; searched to 2.5 sigma)")
     a = ap.parse_args()
     cv2.setNumThreads(1)
     cv2.setUseOptimized(True)
@@ -670,7 +866,7 @@ def main():
     imu_t = np.array([float(r["t"]) for r in imu_rows])
     imu_w = np.array([[float(r["wx"]), float(r["wy"]), float(r["wz"])] for r in imu_rows]).reshape(-1, 3)
     db = LandmarkDb(a.db)
-    nav = Baseline(db, cam, imu_t, imu_w, init, not a.no_gyro, a.ncc)
+    nav = Baseline(db, cam, imu_t, imu_w, init, a)
 
     lines, mlines = [], []
     next_due = -math.inf

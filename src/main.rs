@@ -31,6 +31,8 @@ enum Command {
     Build(BuildArgs),
     /// Write a synthetic ortho + DEM pair (GeoTIFF) for tests and benchmarks.
     Synth(SynthArgs),
+    /// Write a coarser and/or noisier copy of a DEM, for a database whose relief is not the rendered one.
+    DegradeDem(DegradeDemArgs),
     /// Simulate a flight over an ortho + DEM: camera images, IMU, truth (flight format).
     Simulate(SimulateArgs),
     /// Navigate a flight against a landmark database: one pose per processed image.
@@ -113,6 +115,28 @@ struct BuildArgs {
     #[arg(long, default_value_t = trn_server::DEFAULT_CACHE_MB,
           value_parser = clap::value_parser!(u64).range(0..=1 << 24))]
     cache_mb: u64,
+}
+
+#[derive(clap::Args)]
+struct DegradeDemArgs {
+    /// Elevation model to degrade (any GDAL raster; band 1).
+    #[arg(long)]
+    dem: PathBuf,
+    /// Output GeoTIFF (Float32, the input's CRS and nodata; written atomically).
+    #[arg(long)]
+    out: PathBuf,
+    /// Output cell size (m): block averages of round(cell / input cell) cells. Default: the input's grid.
+    #[arg(long)]
+    cell_m: Option<f64>,
+    /// RMS of the added correlated noise (m).
+    #[arg(long, default_value_t = 0.0)]
+    noise_m: f64,
+    /// Correlation length of the noise (m): sigma of the Gaussian that smooths white noise.
+    #[arg(long, default_value_t = 300.0)]
+    noise_scale_m: f64,
+    /// Seed of the noise.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
 }
 
 #[derive(clap::Args)]
@@ -286,6 +310,7 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Command::Build(a) => run_build(a),
         Command::Synth(a) => run_synth(a),
+        Command::DegradeDem(a) => run_degrade_dem(a),
         Command::Simulate(a) => run_simulate(a),
         Command::Navigate(a) => run_navigate(a),
         Command::Evaluate(a) => run_evaluate(a),
@@ -437,6 +462,19 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
         matches_path.display(),
         cov_path.display()
     );
+    println!("{}", serde_json::to_string_pretty(&report)?);
+    Ok(())
+}
+
+fn run_degrade_dem(a: DegradeDemArgs) -> anyhow::Result<()> {
+    let report = trn_sim::dem_variant::degrade_dem(&trn_sim::dem_variant::DemVariantOptions {
+        dem: a.dem,
+        out: a.out,
+        cell_m: a.cell_m,
+        noise_rms_m: a.noise_m,
+        noise_scale_m: a.noise_scale_m,
+        seed: a.seed,
+    })?;
     println!("{}", serde_json::to_string_pretty(&report)?);
     Ok(())
 }

@@ -1284,3 +1284,86 @@ fn ctrl_c_cancels_and_leaves_nothing() {
     let left = common::leftovers(d, &[&ortho, &dem, &sc]);
     assert!(left.is_empty(), "cancelled simulation left behind: {left:?}");
 }
+
+// ---------------------------------------------------------------------------
+// The database's DEM: not the rendered one.
+
+#[test]
+fn degraded_dem_differs_from_the_rendered_one_by_the_stated_amount() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_, dem) = common::synth(dir.path(), 600, 5.0, 440000.0, 4);
+    let out = dir.path().join("db-dem.tif");
+    let o = common::run(&[
+        "degrade-dem",
+        "--dem",
+        dem.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--cell-m",
+        "180",
+        "--noise-m",
+        "3",
+        "--noise-scale-m",
+        "400",
+        "--seed",
+        "9",
+    ]);
+    assert!(o.status.success(), "degrade-dem failed: {}", common::stderr(&o));
+    let report: Value = serde_json::from_slice(&o.stdout).unwrap();
+    let src = Dataset::open(&dem).unwrap();
+    let dst = Dataset::open(&out).unwrap();
+    // Same CRS; cells 3x coarser (the synthetic DEM is at 60 m), same corner.
+    assert!(src.spatial_ref().unwrap() == dst.spatial_ref().unwrap(), "CRS changed");
+    let (gs, gd) = (src.geo_transform().unwrap(), dst.geo_transform().unwrap());
+    let f = (180.0 / gs[1]).round();
+    assert_eq!(report["factor"].as_f64().unwrap(), f);
+    assert!((gd[1] - f * gs[1]).abs() < 1e-9 && (gd[5] - f * gs[5]).abs() < 1e-9);
+    assert_eq!((gd[0], gd[3]), (gs[0], gs[3]));
+    let read = |ds: &Dataset| {
+        let b = ds.rasterband(1).unwrap();
+        let (w, h) = b.size();
+        (b.read_band_as::<f64>().unwrap().data().to_vec(), w, h)
+    };
+    let (a, w, h) = read(&src);
+    let (b, wd, hd) = read(&dst);
+    assert_eq!((wd, hd), (w.div_ceil(f as usize), h.div_ceil(f as usize)));
+    // Against the block means computed here: the difference is the noise, of
+    // the stated RMS, correlated over ~400 m (neighbours at 180 m alike).
+    let f = f as usize;
+    let mut diff = vec![0.0; wd * hd];
+    for j in 0..hd {
+        for i in 0..wd {
+            let cells: Vec<f64> = (j * f..((j + 1) * f).min(h))
+                .flat_map(|r| (i * f..((i + 1) * f).min(w)).map(move |c| (r, c)))
+                .map(|(r, c)| a[r * w + c])
+                .collect();
+            let mean = cells.iter().sum::<f64>() / cells.len() as f64;
+            diff[j * wd + i] = b[j * wd + i] - mean;
+        }
+    }
+    let rms = (diff.iter().map(|d| d * d).sum::<f64>() / diff.len() as f64).sqrt();
+    assert!((rms - 3.0).abs() < 0.01, "noise RMS {rms} vs 3 m");
+    let lag1 = (0..hd)
+        .flat_map(|j| (0..wd - 1).map(move |i| (j, i)))
+        .map(|(j, i)| diff[j * wd + i] * diff[j * wd + i + 1]);
+    let rho1 = lag1.sum::<f64>() / ((wd - 1) * hd) as f64 / (rms * rms);
+    assert!(rho1 > 0.7, "correlated noise: lag-1 correlation {rho1}");
+
+    // Bad options: one error line naming the option, nothing written.
+    let bad = dir.path().join("bad.tif");
+    for (args, name) in [
+        (vec!["--cell-m=-5"], "--cell-m"),
+        (vec!["--noise-m", "nan"], "--noise-m"),
+        (vec!["--noise-scale-m=-1"], "--noise-scale-m"),
+    ] {
+        let mut all = vec!["degrade-dem", "--dem", dem.to_str().unwrap(), "--out", bad.to_str().unwrap()];
+        all.extend(args);
+        let o = common::run(&all);
+        assert_fails(&o, &[name], dir.path(), name);
+        assert!(!bad.exists(), "{name}: left {}", bad.display());
+    }
+    let missing = dir.path().join("missing.tif");
+    let o = common::run(&["degrade-dem", "--dem", missing.to_str().unwrap(), "--out", bad.to_str().unwrap()]);
+    assert_fails(&o, &["missing.tif"], dir.path(), "missing DEM");
+    assert!(!bad.exists());
+}

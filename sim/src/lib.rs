@@ -9,11 +9,13 @@
 //!
 //! Parts: [`scene`] (terrain + ortho pyramid, pure) filled by [`load`]
 //! (GDAL), [`trajectory`] and [`imu`] (pure), [`render`] (ray casting),
-//! [`effects`] (photometry, haze, noise, vignetting, blur, clouds, cords).
+//! [`effects`] (photometry, haze, noise, vignetting, blur, clouds, cords),
+//! [`dem_variant`] (the database's DEM that is not the rendered one).
 
 // `!(x > y)` is how these crates reject NaN along with out-of-range values.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
+pub mod dem_variant;
 pub mod effects;
 pub mod imu;
 pub mod load;

@@ -841,7 +841,7 @@ fn rendered_pixels_see_the_ground_points_the_truth_pose_projects() {
 /// Every realism effect on, with its defaults.
 fn all_realism() -> Value {
     json!({
-        "photometric": {}, "haze": {}, "noise": {}, "vignetting": {},
+        "sun": {}, "photometric": {}, "haze": {}, "noise": {}, "vignetting": {},
         "motion_blur": {}, "clouds": {}, "cords": {}
     })
 }

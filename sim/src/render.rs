@@ -850,6 +850,38 @@ mod tests {
         assert!(shadowed > 1000 && sunny > 5000 && on_face > 0, "{shadowed} {sunny} {on_face}");
     }
 
+    /// `cargo test --release -p trn-sim --lib render::tests::timing_sun -- --ignored --nocapture`
+    #[test]
+    #[ignore]
+    fn timing_sun_1024x768() {
+        let sc = scene(|lat, lon| 1500.0 + 150.0 * ((lat * 900.0).sin() * (lon * 700.0).cos()));
+        let sun = crate::sun::Sun { azimuth_deg: 135.0, elevation_deg: 15.0, ambient: 0.25 };
+        let t0 = std::time::Instant::now();
+        let light = Illumination::new(&sc.terrain, &sun);
+        println!(
+            "illumination of {} nodes: {:.1} ms",
+            sc.terrain.heights.values.len(),
+            1e3 * t0.elapsed().as_secs_f64()
+        );
+        let cam = CameraModel::from_fov(1024, 768, 32.0);
+        let g = Geodetic::new(40.1, -105.6, 12_000.0);
+        let north = Geodetic::new(40.11, -105.6, 0.0).to_ecef().0 - g.with_height(0.0).to_ecef().0;
+        let pose = CameraPose::look_at(g.to_ecef(), g.with_height(0.0).to_ecef(), north.normalize());
+        let plain = Renderer::new(&sc, cam);
+        let lit = Renderer::new(&sc, cam).with_illumination(light);
+        let mut frame = RenderedFrame::default();
+        let (mut best_off, mut best_on) = (f64::INFINITY, f64::INFINITY);
+        // Interleaved, best of several: the machine may be shared.
+        for _ in 0..15 {
+            for (r, best) in [(&plain, &mut best_off), (&lit, &mut best_on)] {
+                let t0 = std::time::Instant::now();
+                r.render_into(&pose, &mut frame);
+                *best = best.min(1e3 * t0.elapsed().as_secs_f64());
+            }
+        }
+        println!("render 1024x768: {best_off:.1} ms without the sun, {best_on:.1} ms with");
+    }
+
     #[test]
     fn rays_above_the_horizon_see_sky() {
         let sc = scene(|_, _| 1500.0);

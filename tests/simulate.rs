@@ -910,7 +910,7 @@ fn rendered_pixels_see_the_ground_points_the_truth_pose_projects() {
 /// Every realism effect on, with its defaults.
 fn all_realism() -> Value {
     json!({
-        "photometric": {}, "haze": {}, "noise": {}, "vignetting": {},
+        "sun": {}, "spectral": {}, "brightness_field": {}, "photometric": {}, "haze": {}, "noise": {}, "vignetting": {},
         "motion_blur": {}, "clouds": {}, "cords": {}
     })
 }

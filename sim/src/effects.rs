@@ -3,7 +3,9 @@
 //! during the exposure), suspension cords (just in front of the lens),
 //! vignetting (lens), photometric response and noise (sensor), then a clamp to
 //! 0..255. Each effect is off unless its section is present in the scenario's
-//! `realism`; `"haze": {}` switches haze on with its defaults.
+//! `realism`; `"haze": {}` switches haze on with its defaults. The sun
+//! ([`Sun`]) is not applied here but by the renderer, through an illumination
+//! grid on the terrain ([`crate::sun`]).
 //!
 //! Deterministic: randomness comes from [`Rng`] streams of the flight seed
 //! (and the frame index where it must change between frames), so runs repeat.
@@ -46,6 +48,8 @@ pub struct FrameContext {
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Realism {
+    /// Re-lighting of the terrain, applied by the renderer.
+    pub sun: Option<Sun>,
     /// The camera's spectral response: its own weights of the ortho's red,
     /// green and blue bands (applied when the scene is loaded, see
     /// [`Spectral`]).
@@ -60,6 +64,34 @@ pub struct Realism {
     pub motion_blur: Option<MotionBlur>,
     pub clouds: Option<Clouds>,
     pub cords: Option<Cords>,
+}
+
+/// A sun other than the one of the ortho's acquisition: Lambertian shading
+/// from the DEM normal and cast shadows from the terrain, multiplied on top
+/// of the ortho, which stays the albedo with its own baked-in lighting. The
+/// factor on a terrain point is `(ambient + (1 - ambient) max(0, n.s) lit) /
+/// (ambient + (1 - ambient) sin(elevation))` (`n` the terrain normal, `s`
+/// the direction to the sun, `lit` 0 in cast shadow with an edge softened
+/// over about one DEM cell), so flat, unshadowed ground keeps its ortho
+/// brightness, slopes facing the sun brighten and shadows darken to
+/// `ambient / (ambient + (1 - ambient) sin(elevation))`. The sun has the same
+/// azimuth and elevation over the whole scene.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Sun {
+    /// Direction of the sun, clockwise from north (deg, in [-360, 360]).
+    pub azimuth_deg: f64,
+    /// Height of the sun above the local horizon (deg, in (0, 90]).
+    pub elevation_deg: f64,
+    /// Share of the light that is diffuse (sky light), the only light in
+    /// shadows and on slopes facing away from the sun (in [0, 1]).
+    pub ambient: f64,
+}
+
+impl Default for Sun {
+    fn default() -> Self {
+        Self { azimuth_deg: 135.0, elevation_deg: 35.0, ambient: 0.25 }
+    }
 }
 
 /// The camera's spectral response differs from the database's luminance
@@ -292,6 +324,7 @@ impl Realism {
     /// Every effect on with its defaults (for tests and benchmarks).
     pub fn all_on() -> Self {
         Self {
+            sun: Some(Sun::default()),
             spectral: Some(Spectral::default()),
             brightness_field: Some(BrightnessField::default()),
             photometric: Some(Photometric::default()),
@@ -310,6 +343,16 @@ impl Realism {
 
     /// Checks every field of the effects that are on; the error names the field.
     pub fn validate(&self) -> Result<(), String> {
+        if let Some(s) = &self.sun {
+            within("sun.azimuth_deg", s.azimuth_deg, -360.0, 360.0)?;
+            if !(s.elevation_deg > 0.0 && s.elevation_deg <= 90.0) {
+                return Err(format!(
+                    "realism.sun.elevation_deg must be in (0, 90] (got {})",
+                    s.elevation_deg
+                ));
+            }
+            within("sun.ambient", s.ambient, 0.0, 1.0)?;
+        }
         if let Some(sp) = &self.spectral {
             for (k, w) in sp.weights.iter().enumerate() {
                 within(&format!("spectral.weights[{k}]"), *w, 0.0, 1e3)?;
@@ -1692,6 +1735,34 @@ mod tests {
             let err = r.validate().unwrap_err();
             assert!(err.contains(name), "{err}");
         }
+    }
+
+    #[test]
+    fn validate_refuses_a_bad_sun() {
+        let sun = |azimuth_deg: f64, elevation_deg: f64, ambient: f64| {
+            only(|r| r.sun = Some(Sun { azimuth_deg, elevation_deg, ambient })).validate()
+        };
+        for (a, e, amb) in [(135.0, 35.0, 0.25), (-90.0, 90.0, 0.0), (360.0, 0.5, 1.0)] {
+            assert!(sun(a, e, amb).is_ok(), "{a} {e} {amb}");
+        }
+        let cases = [
+            ((135.0, 0.0, 0.25), "realism.sun.elevation_deg"),
+            ((135.0, -10.0, 0.25), "realism.sun.elevation_deg"),
+            ((135.0, 90.5, 0.25), "realism.sun.elevation_deg"),
+            ((135.0, f64::NAN, 0.25), "realism.sun.elevation_deg"),
+            ((f64::NAN, 35.0, 0.25), "realism.sun.azimuth_deg"),
+            ((f64::INFINITY, 35.0, 0.25), "realism.sun.azimuth_deg"),
+            ((135.0, 35.0, -0.1), "realism.sun.ambient"),
+            ((135.0, 35.0, 1.5), "realism.sun.ambient"),
+        ];
+        for ((a, e, amb), name) in cases {
+            let err = sun(a, e, amb).unwrap_err();
+            assert!(err.contains(name), "{a} {e} {amb}: {err}");
+        }
+        // Defaults from an empty section; unknown fields refused.
+        let r: Realism = serde_json::from_str(r#"{"sun": {"elevation_deg": 10}}"#).unwrap();
+        assert_eq!(r.sun, Some(Sun { elevation_deg: 10.0, ..Sun::default() }));
+        assert!(serde_json::from_str::<Realism>(r#"{"sun": {"zenith_deg": 10}}"#).is_err());
     }
 
     #[test]

@@ -10,7 +10,8 @@
 //! Parts: [`scene`] (terrain + ortho pyramid, pure) filled by [`load`]
 //! (GDAL), [`trajectory`] and [`imu`] (pure), [`render`] (ray casting),
 //! [`effects`] (photometry, haze, noise, vignetting, blur, clouds, cords),
-//! [`dem_variant`] (the database's DEM that is not the rendered one).
+//! [`dem_variant`] (the database's DEM that is not the rendered one),
+//! [`sun`] (re-lighting of the terrain, applied by the renderer).
 
 // `!(x > y)` is how these crates reject NaN along with out-of-range values.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
@@ -23,6 +24,7 @@ pub mod render;
 pub mod rng;
 pub mod scenario;
 pub mod scene;
+pub mod sun;
 pub mod trajectory;
 
 use std::path::{Path, PathBuf};
@@ -144,7 +146,19 @@ pub fn simulate(opts: &SimOptions, cancel: &AtomicBool) -> Result<SimReport, Sim
     let resolved = serde_json::to_string_pretty(&scenario).expect("a scenario serializes");
     std::fs::write(dir.join("scenario.json"), resolved + "\n").map_err(out_err)?;
 
-    let renderer = render::Renderer::new(&scene, true_camera);
+    let mut renderer = render::Renderer::new(&scene, true_camera);
+    if let Some(sun) = &scenario.realism.sun {
+        let t0 = Instant::now();
+        renderer = renderer.with_illumination(sun::Illumination::new(&scene.terrain, sun));
+        info!(
+            "sun at azimuth {:.1} deg, elevation {:.1} deg: illumination of {} x {} terrain nodes in {:.0} ms",
+            sun.azimuth_deg,
+            sun.elevation_deg,
+            scene.terrain.heights.rows,
+            scene.terrain.heights.cols,
+            1e3 * t0.elapsed().as_secs_f64()
+        );
+    }
     let bar = ProgressBar::new(n_frames as u64);
     bar.set_style(
         ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} frames, {elapsed_precise} (eta {eta})")

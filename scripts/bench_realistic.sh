@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The realistic navigation benchmark: real relief, real imagery, and a world
-# that is not the map. One command from a fresh clone (after
-# scripts/install-deps.sh): fetches the real worlds, degrades each world's DEM
+# that is not the map. One command from a fresh clone: installs what is
+# missing (scripts/install-deps.sh, the Python venv), fetches the real worlds, degrades each world's DEM
 # for its database, builds trn's databases with DEFAULT options, renders every
 # scenario of data-samples/scenarios/realistic/ with the true DEM, then runs
 # scripts/bench_nav.sh (trn navigate and the OpenCV baseline, each on its own
@@ -35,8 +35,9 @@ DB_NOISE_M=${DB_NOISE_M:-4}
 scen_dir=data-samples/scenarios/realistic
 real=data-samples/real
 
+scripts/install-deps.sh
 data-samples/fetch.sh >/dev/null
-[ -x .venv/bin/python ] || scripts/venv.sh >/dev/null
+scripts/venv.sh >/dev/null
 cargo build --release --quiet --bin trn
 trn=target/release/trn
 mkdir -p "$OUT/db" "$OUT/flights"

@@ -1367,3 +1367,51 @@ fn degraded_dem_differs_from_the_rendered_one_by_the_stated_amount() {
     assert_fails(&o, &["missing.tif"], dir.path(), "missing DEM");
     assert!(!bad.exists());
 }
+
+// ---------------------------------------------------------------------------
+// The camera's spectral response.
+
+#[test]
+fn spectral_weights_make_the_camera_luminance_from_the_ortho_bands() {
+    let dir = tempfile::tempdir().unwrap();
+    let (ortho, dem) = common::synth(dir.path(), 300, 5.0, 440000.0, 6);
+    let sources = |weights: Option<[f32; 3]>| trn_sim::SceneSources {
+        ortho: ortho.clone(),
+        ortho_bands: None,
+        dems: vec![dem.clone()],
+        dem_vertical: Some(trn_builder::DemVertical::Ellipsoid),
+        geoid: None,
+        spectral_weights: weights,
+    };
+    // The ortho's bands read by GDAL: the camera's grey level is their weighted sum.
+    let ds = Dataset::open(&ortho).unwrap();
+    let band = |b: usize| ds.rasterband(b).unwrap().read_band_as::<f64>().unwrap().data().to_vec();
+    let (r, g, b) = (band(1), band(2), band(3));
+    let w = ds.raster_size().0;
+    let weights = [0.2f32, 0.5, 0.3];
+    let scene = trn_sim::load_scene(&sources(Some(weights))).unwrap();
+    let luma = trn_sim::load_scene(&sources(None)).unwrap();
+    let mut differs = 0;
+    for (x, y) in [(3usize, 7usize), (120, 45), (250, 260), (299, 0), (17, 199)] {
+        let k = y * w + x;
+        let want = weights[0] as f64 * r[k] + weights[1] as f64 * g[k] + weights[2] as f64 * b[k];
+        let got = scene.ortho.sample_level(0, x as f64, y as f64) as f64;
+        assert!((got - want).abs() < 1e-3, "({x}, {y}): {got} vs {want}");
+        let rec601 = 0.299 * r[k] + 0.587 * g[k] + 0.114 * b[k];
+        let l = luma.ortho.sample_level(0, x as f64, y as f64) as f64;
+        assert!((l - rec601).abs() < 1e-3, "({x}, {y}): luma {l} vs {rec601}");
+        differs += ((got - l).abs() > 0.5) as usize;
+    }
+    assert!(differs >= 3, "the weights change the grey levels");
+    // A one-band ortho cannot give a spectral response: the error names the file and the key.
+    let grey = dir.path().join("grey.tif");
+    let o = std::process::Command::new("gdal_translate")
+        .args(["-q", "-b", "1", ortho.to_str().unwrap(), grey.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(o.status.success());
+    let err = trn_sim::load_scene(&trn_sim::SceneSources { ortho: grey.clone(), ..sources(Some(weights)) })
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("grey.tif") && err.contains("realism.spectral"), "{err}");
+}

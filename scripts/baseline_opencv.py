@@ -810,6 +810,8 @@ class Baseline:
     def pnp(self, obs, P, origin, pts, ids, thr, sub, iterations):
         """RANSAC P3P on the matches `sub`, LM refinement, re-classification of all matches."""
         n = len(obs)
+        if len(sub) < 4:
+            return None
         ok, rvec, tvec, inl = cv2.solvePnPRansac(
             P[sub].reshape(-1, 1, 3), obs[sub].reshape(-1, 1, 2), self.cam.K, self.cam.dist,
             iterationsCount=iterations, reprojectionError=thr, confidence=0.999, flags=cv2.SOLVEPNP_AP3P)

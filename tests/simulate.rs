@@ -1392,7 +1392,7 @@ fn spectral_weights_make_the_camera_luminance_from_the_ortho_bands() {
     let scene = trn_sim::load_scene(&sources(Some(weights))).unwrap();
     let luma = trn_sim::load_scene(&sources(None)).unwrap();
     let mut differs = 0;
-    for (x, y) in [(3usize, 7usize), (120, 45), (250, 260), (299, 0), (17, 199)] {
+    for (x, y) in [(3usize, 7usize), (120, 45), (250, 260), (297, 2), (17, 199)] {
         let k = y * w + x;
         let want = weights[0] as f64 * r[k] + weights[1] as f64 * g[k] + weights[2] as f64 * b[k];
         let got = scene.ortho.sample_level(0, x as f64, y as f64) as f64;

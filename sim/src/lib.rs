@@ -7,7 +7,8 @@
 //! integral is the true attitude ([`imu`]), an initial pose guess with a
 //! chosen error, and the truth.
 //!
-//! Parts: [`scene`] (terrain + ortho pyramid, pure) filled by [`load`]
+//! Parts: [`scene`] (terrain + ortho pyramid, pure; [`bounds`], the
+//! terrain's max-height pyramid for the marcher) filled by [`load`]
 //! (GDAL), [`trajectory`] and [`imu`] (pure), [`render`] (ray casting),
 //! [`effects`] (photometry, haze, noise, vignetting, blur, clouds, cords),
 //! [`dem_variant`] (the database's DEM that is not the rendered one),
@@ -16,6 +17,7 @@
 // `!(x > y)` is how these crates reject NaN along with out-of-range values.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
+pub mod bounds;
 pub mod dem_variant;
 pub mod effects;
 pub mod imu;

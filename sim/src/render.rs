@@ -1,7 +1,12 @@
 //! Ray-cast camera images: each pixel's ray (distortion included) is marched
-//! through the WGS84 terrain (sphere tracing bounded by the terrain's
-//! steepest slope, then false position to the surface), so relief occludes
-//! what lies behind it and rays above the horizon see sky. Ray samples near
+//! through the WGS84 terrain, so relief occludes what lies behind it and
+//! rays above the horizon see sky. Every step is safe (it cannot pass
+//! through terrain): the longest of a max-height pyramid's step over the
+//! blocks under the ray (down to the block's maximum or out of the block,
+//! or sphere tracing with the block's own slope; [`crate::bounds`]), the
+//! exact step within the DEM cell under the ray (its bilinear surface along
+//! the ray is a quadratic), and sphere tracing with the terrain's steepest
+//! slope; a step that lands below the surface is refined by false position. Ray samples near
 //! the hit of a tile's centre ray take their geodetic position from a
 //! quadratic expansion around that hit instead of the exact conversion
 //! (sub-millimetre either way). The ortho is then sampled with the pixel's
@@ -15,6 +20,7 @@ use rayon::prelude::*;
 use trn_camera::{CameraModel, CameraPose, Pixel};
 use trn_geodesy::{WGS84_A, WGS84_B};
 
+use crate::bounds::{GridBox, RayMotion};
 use crate::scene::{fast_geodetic, NearGeodetic, Scene};
 use crate::sun::Illumination;
 
@@ -136,15 +142,51 @@ impl<'a> Renderer<'a> {
         let mut s = s_enter;
         let (mut row, mut col, mut h) = geo(s);
         // Vertical and horizontal parts of the direction at the entry point
-        // bound how fast the ray can approach the surface.
+        // bound how fast the ray can approach the surface: along a straight
+        // line the vertical turns towards the line, so the descent rate only
+        // falls (by at least d_horiz^2 per radius of curvature, < 6.41e6 m
+        // with the height) and the horizontal rate grows by at most the
+        // range over the radius (> 6.3e6 m).
         let up = ellipsoid_normal(&(origin + dir * s));
         let d_down = (-dir.dot(&up)).max(0.0);
         let d_horiz = (1.0 - d_down * d_down).max(0.0).sqrt();
         let approach = d_down + t.max_slope * d_horiz;
-        // The slope bound makes every step safe; a floor keeps grazing rays moving.
+        let turn = d_horiz * d_horiz / (6.41e6 + t.h_max_m.max(0.0));
+        let descent = |s: f64| (d_down - (s - s_enter) * turn).max(0.0);
+        let d_horiz_max = (d_horiz + (s_exit - s_enter) / 6.3e6).min(1.0);
+        // A floor that keeps rays moving where no exact step is known (next
+        // to no data) or where one stalls (tangent to the surface).
         let min_step = 0.05 * t.cell_m / d_horiz.max(0.05);
+        // Grid velocity (rows, columns per metre of range) from a short chord.
+        let ds = 0.5 * t.cell_m;
+        let velocity = |s: f64, row: f64, col: f64| {
+            let (r1, c1, _) = geo(s + ds);
+            ((r1 - row) / ds, (c1 - col) / ds)
+        };
+        let motion = |s: f64, row: f64, col: f64| RayMotion::new(velocity(s, row, col), d_down, d_horiz_max);
+        let mut ray = Some(motion(s, row, col));
+        // Range to cross a cell (at the entry's grid velocity, roughly): a
+        // pyramid step longer than that leaves the cell step no chance.
+        let cell_crossing = ray.as_ref().map_or(0.0, |m| m.cell_crossing_m());
+        let mut mispredicted = 0;
+        // A pyramid step taken: the reach it must land in, and where it began.
+        let mut landing: Option<(GridBox, f64, (f64, f64, f64))> = None;
+        // The last sample (above the surface): range and height above the
+        // surface, for the bracket; range and grid position, for the track.
         let mut prev: Option<(f64, f64)> = None;
+        let mut last: Option<(f64, f64, f64)> = None;
+        let mut stalled = 0;
         loop {
+            if let Some((reach, s0, g0)) = landing.take() {
+                if !reach.contains(row, col) {
+                    // The grid velocity was off: retake the step from a
+                    // fresh estimate (twice at most, then without the pyramid).
+                    mispredicted += 1;
+                    (s, (row, col, h)) = (s0, g0);
+                    ray = (mispredicted <= 2).then(|| motion(s, row, col));
+                    last = None;
+                }
+            }
             let ground = t.height_at(row, col);
             let has_dem = ground.is_finite();
             let f = h - if has_dem { ground } else { t.h_min_m };
@@ -158,23 +200,62 @@ impl<'a> Renderer<'a> {
             if s >= s_exit {
                 return None;
             }
-            // Sphere tracing: the surface cannot be nearer than f / approach
-            // (a step past it, where the vertical has turned on a long ray, is
-            // caught by the bracket above). Beyond the DEM the floor is flat.
+            // Sphere tracing: the surface cannot be nearer than f / approach.
+            // Beyond the DEM the floor is flat: its own step lands on it.
             let safe = if has_dem { f / approach.max(1e-9) } else { f / d_down.max(1e-3) };
-            // Grazing rays close in slowly; the secant toward the surface may
-            // run ahead by up to one DEM cell (a bilinear cell cannot hide a
-            // peak from both ends), any overshoot is bracketed and refined.
-            let secant = match prev {
-                Some((sp, fp)) if fp > f => (f * (s - sp) / (fp - f)).min(t.cell_m / d_horiz.max(1e-3)),
-                _ => 0.0,
-            };
-            // Off the DEM the floor is flat: its own step lands on it, where
-            // the minimum step would overshoot into a refinement.
-            let step = if has_dem { safe.max(secant).max(min_step) } else { safe.max(secant) };
+            let mut step = safe;
+            let mut reach = None;
+            // Whether the step is the minimum one rather than a safe one.
+            let mut guessed = false;
+            if has_dem {
+                // The pyramid: over the local maxima and slopes, often far longer.
+                if let Some((t_p, r)) = ray.as_ref().and_then(|m| t.bounds.step(m, row, col, h, f)) {
+                    if t_p > step {
+                        (step, reach) = (t_p, Some(r));
+                    }
+                }
+                // Close to the surface: the exact step within the cell,
+                // along the track from the last sample when it is near (a
+                // chord short against the grid's curvature), else from a
+                // fresh chord.
+                if reach.is_none() || step < cell_crossing {
+                    let v = match last {
+                        Some((sl, rl, cl)) if s - sl > 1e-3 && s - sl < 200.0 => {
+                            ((row - rl) / (s - sl), (col - cl) / (s - sl))
+                        }
+                        _ => velocity(s, row, col),
+                    };
+                    match t.cell_step((row, col, h), descent(s), v, approach.max(1e-9)) {
+                        Some(t_c) if t_c > step => (step, reach) = (t_c, None),
+                        Some(_) => {}
+                        // A cell next to no data: sphere tracing with the
+                        // minimum step, as ever.
+                        None => guessed = min_step > step,
+                    }
+                }
+                // A ray grazing the surface within a few millimetres above
+                // the tolerance may close in ever more slowly.
+                stalled = if step < min_step { stalled + 1 } else { 0 };
+                if stalled > 16 {
+                    guessed = true;
+                }
+                if guessed {
+                    (step, reach) = (min_step, None);
+                }
+            }
             prev = Some((s, f));
+            last = Some((s, row, col));
+            let (s0, g0) = (s, (row, col, h));
             s = (s + step).min(s_exit);
             (row, col, h) = geo(s);
+            landing = reach.map(|r| (r, s0, g0));
+            if guessed && !t.height_at(row, col).is_finite() {
+                // The minimum step crossed into no data, where the floor is
+                // far below: a crossing just before the DEM's edge would be
+                // lost. Retake the safe step instead.
+                s = (s0 + safe).min(s_exit);
+                (row, col, h) = geo(s);
+            }
         }
     }
 
@@ -730,6 +811,127 @@ mod tests {
             }
         }
         assert!(n > 50);
+    }
+
+    #[test]
+    fn marcher_never_misses_an_occluder_on_spiky_terrain() {
+        // Rough ground with one-node spikes 700 m high (slopes to 16), a
+        // 350 m cliff and thin ridges: rays from all around, grazing to
+        // steep, against a fine march (0.5 m steps near the terrain).
+        let spike = |lat: f64, lon: f64| {
+            let (r, c) = (((40.2 - lat) / 0.0005).round() as i64, ((lon + 105.7) / 0.0005).round() as i64);
+            ((r * 7919 + c * 104_729) % 61 == 0) as i32 as f64 * 700.0
+        };
+        let sc = scene(|lat, lon| {
+            1500.0
+                + 80.0 * ((lat * 2100.0).sin() * (lon * 1700.0).cos())
+                + spike(lat, lon)
+                + if lon > -105.62 { 350.0 } else { 0.0 }
+                + if ((lat - 40.05) * 4000.0).rem_euclid(37.0) < 1.0 { 250.0 } else { 0.0 }
+        });
+        let t = &sc.terrain;
+        assert!(t.max_slope > 10.0, "{}", t.max_slope);
+        let r = Renderer::new(&sc, CameraModel::from_fov(8, 8, 40.0));
+        let fine = |o: &Vector3<f64>, d: &Vector3<f64>| -> Option<f64> {
+            let f = |s: f64| {
+                let g = Ecef(o + d * s).to_geodetic();
+                let ground = sc.terrain.height_m(g.lat_deg, g.lon_deg);
+                g.h_m - if ground.is_finite() { ground } else { t.h_min_m }
+            };
+            let mut s = 0.0;
+            let mut fs = f(s);
+            while s < 400_000.0 {
+                // Far above the terrain the global slope bounds the step.
+                let step = (0.5 * fs / (1.0 + t.max_slope)).max(0.5);
+                let fn_ = f(s + step);
+                if fn_ < 0.0 {
+                    let (mut a, mut b) = (s, s + step);
+                    for _ in 0..50 {
+                        let m = 0.5 * (a + b);
+                        if f(m) > 0.0 {
+                            a = m
+                        } else {
+                            b = m
+                        }
+                    }
+                    return Some(0.5 * (a + b));
+                }
+                (s, fs) = (s + step, fn_);
+            }
+            None
+        };
+        let mut rng = crate::rng::Rng::stream(11, "occluders");
+        let spikes: Vec<(f64, f64)> = (40..360)
+            .flat_map(|r| (40..360).map(move |c| (40.2 - r as f64 * 0.0005, -105.7 + c as f64 * 0.0005)))
+            .filter(|&(lat, lon)| spike(lat, lon) > 0.0)
+            .collect();
+        let (mut grazing, mut steep, mut tips) = (0, 0, 0);
+        for k in 0..600 {
+            let (lat, lon) = (rng.range(40.06, 40.14), rng.range(-105.68, -105.52));
+            // Grazing rays from low over the ground towards the grid's
+            // middle, steep ones from higher up, and rays aimed a few metres
+            // below a spike's tip from all sides.
+            let (o, d) = if k % 3 == 2 {
+                let (plat, plon) = spikes[(rng.uniform() * spikes.len() as f64) as usize];
+                let peak = t.height_m(plat, plon);
+                let tip = Geodetic::new(plat, plon, peak - rng.range(3.0, 40.0)).to_ecef().0;
+                let (glat, glon) = (plat + rng.range(-0.03, 0.03), plon + rng.range(-0.03, 0.03));
+                let run = (Geodetic::new(glat, glon, peak).to_ecef().0 - tip).norm();
+                let dip = rng.range(1.0, 40.0).to_radians();
+                let o = Geodetic::new(glat, glon, peak + run * dip.tan()).to_ecef().0;
+                (o, (tip - o).normalize())
+            } else {
+                let (h, az) = if k % 3 == 0 {
+                    let to_mid = (-105.6 - lon).atan2(40.1 - lat);
+                    (t.height_m(lat, lon) + rng.range(30.0, 900.0), to_mid + rng.range(-1.2, 1.2))
+                } else {
+                    (rng.range(2600.0, 7000.0), rng.range(0.0, std::f64::consts::TAU))
+                };
+                let g = Geodetic::new(lat, lon, h);
+                let up = g.up_ecef();
+                let east = Vector3::new(0.0, 0.0, 1.0).cross(&up).normalize();
+                let north = up.cross(&east);
+                let dip = if k % 3 == 0 { rng.range(2.0, 12.0) } else { rng.range(12.0, 89.0) }.to_radians();
+                (
+                    g.to_ecef().0,
+                    (-up * dip.sin() + (north * az.cos() + east * az.sin()) * dip.cos()).normalize(),
+                )
+            };
+            let dip = (-d.dot(&Ecef(o).to_geodetic().up_ecef())).asin();
+            let got = r.cast(&o, &d);
+            let want = fine(&o, &d);
+            match (got, want) {
+                (Some(h), Some(w)) if h.has_dem => {
+                    // Within the 1 cm tolerance (at grazing incidence, more
+                    // range), or before: on a crest the ray passes within
+                    // the tolerance, between two of the fine march's steps.
+                    let near = (h.range_m - w).abs() < 0.01 / dip.sin() + 0.05;
+                    let g = Ecef(o + d * h.range_m).to_geodetic();
+                    let on_crest = h.range_m < w && (g.h_m - t.height_m(g.lat_deg, g.lon_deg)).abs() < 0.011;
+                    assert!(near || on_crest, "ray {k}: {} vs {w}", h.range_m);
+                    match k % 3 {
+                        0 => grazing += 1,
+                        1 => steep += 1,
+                        _ => tips += 1,
+                    }
+                }
+                // Past the DEM both meet the floor (far away on grazing rays,
+                // where the vertical has turned).
+                (Some(h), Some(w)) => {
+                    let p = Ecef(o + d * w).to_geodetic();
+                    assert!(
+                        t.height_m(p.lat_deg, p.lon_deg).is_nan(),
+                        "ray {k}: {} vs {w} on the DEM",
+                        h.range_m
+                    );
+                    assert!((h.range_m - w).abs() < 2.0, "ray {k}: {} vs {w}", h.range_m);
+                }
+                (None, None) => {}
+                (g, w) => panic!("ray {k}: marcher {g:?}, fine march {w:?}"),
+            }
+        }
+        println!("{grazing} grazing, {steep} steep, {tips} below spike tips");
+        assert!(grazing > 120 && steep > 120 && tips > 150, "{grazing} grazing, {steep} steep, {tips} tips");
     }
 
     #[test]

@@ -3,6 +3,7 @@
 //! and the map from latitude/longitude to ortho pixels. Pure data and
 //! sampling; `load.rs` fills it through GDAL.
 
+use crate::bounds::TerrainBounds;
 use trn_geodesy::{WGS84_A, WGS84_B, WGS84_E2};
 
 /// Values on a regular latitude/longitude grid: node `(row, col)` lies at
@@ -96,6 +97,9 @@ pub struct Terrain {
     pub max_slope: f64,
     /// Node spacing on the ground (m), the smaller of the two directions.
     pub cell_m: f64,
+    /// Per-block height maxima and slopes for the marcher (built from
+    /// `heights`: rebuild the terrain after changing them).
+    pub bounds: TerrainBounds,
 }
 
 impl Terrain {
@@ -131,6 +135,7 @@ impl Terrain {
         }
         // Diagonal slopes within a bilinear cell are at most sqrt(2) times the edge slopes.
         Some(Self {
+            bounds: TerrainBounds::new(&heights, h_min_m),
             heights,
             h_min_m,
             h_max_m,
@@ -149,6 +154,69 @@ impl Terrain {
     #[inline(always)]
     pub fn height_at(&self, row: f64, col: f64) -> f64 {
         self.heights.bilinear_at(row, col)
+    }
+
+    /// How far (m of range) a ray at grid position (row, col) and height
+    /// `h` may go without meeting the bilinear surface of the cell under it,
+    /// moving `(v_row, v_col)` grid units per metre and descending at most
+    /// `descent` m per metre; `approach` bounds how fast it can close in on
+    /// the surface anywhere (for the nudge into the next cell). Along the
+    /// ray's (linear) track the cell's surface is a quadratic in the range t,
+    /// `g0 + g1 t + g2 t^2`, so the height above it is at least
+    /// `q(t) = (h - g0) - (descent + g1) t - g2 t^2`: the answer is q's first
+    /// root if it comes before the track leaves the cell, else the exit
+    /// (plus a nudge the surface cannot rise into). `None` outside the grid,
+    /// on no data or when the ray is not above the surface.
+    #[inline]
+    pub fn cell_step(
+        &self,
+        (row, col, h): (f64, f64, f64),
+        descent: f64,
+        (v_row, v_col): (f64, f64),
+        approach: f64,
+    ) -> Option<f64> {
+        let g = &self.heights;
+        let (i, u0, w0) = g.cell(row, col)?;
+        let v = &g.values;
+        let (a, b, c, d) = (v[i] as f64, v[i + 1] as f64, v[i + g.cols] as f64, v[i + g.cols + 1] as f64);
+        // Bilinear: a + (c - a) u + (b - a) w + k u w, with u along rows.
+        let k = a - b - c + d;
+        let g0 = a + (c - a) * u0 + (b - a) * w0 + k * u0 * w0;
+        let f0 = h - g0;
+        if !(f0 > 0.0) {
+            return None;
+        }
+        let g1 = (c - a + k * w0) * v_row + (b - a + k * u0) * v_col;
+        let g2 = k * v_row * v_col;
+        // Range to the cell's edge along each axis (infinite when still).
+        let exit = |x: f64, vx: f64| {
+            if vx > 0.0 {
+                (1.0 - x) / vx
+            } else if vx < 0.0 {
+                -x / vx
+            } else {
+                f64::INFINITY
+            }
+        };
+        let t_exit = exit(u0, v_row).min(exit(w0, v_col));
+        // First positive root of g2 t^2 + B t - f0 (q(0) = f0 > 0), in the
+        // form without cancellation; none when q stays positive.
+        let bq = descent + g1;
+        let disc = bq * bq + 4.0 * g2 * f0;
+        if disc >= 0.0 {
+            let den = bq + disc.sqrt();
+            if den > 0.0 {
+                let t_root = 2.0 * f0 / den;
+                if t_root < t_exit {
+                    return Some(t_root);
+                }
+            }
+        }
+        // Past the edge by a thousandth of a cell at most, where the ray
+        // cannot reach the surface (whose slope `approach` bounds) yet.
+        let q_exit = f0 - bq * t_exit - g2 * t_exit * t_exit;
+        let nudge = (1e-3 / v_row.abs().max(v_col.abs())).min(q_exit.max(0.0) / approach);
+        Some(t_exit + nudge)
     }
 }
 

@@ -52,7 +52,8 @@ Per image:
      Acquisition (no fix yet, or a search radius above a quarter of the focal
      length): the radius is not capped at fx/4 but at 4 image sizes, the
      footprint box is widened by it, landmarks predicted up to that far outside
-     the image are correlated too (1500 at most), and the matches vote on one
+     the image are correlated too (1500 at most, and no more than fit 3e8
+     correlation positions: bounded cost while lost), and the matches vote on one
      common image shift (the densest cluster, radius 6% of the image diagonal)
      before RANSAC (5000 iterations); the full-resolution refinement from the
      acquired pose checks it.
@@ -344,6 +345,11 @@ ACQ_MAX_MARGIN = 4.0       # search radius at most this many image sizes
 ACQ_VOTE_RADIUS = 0.06     # shift cluster radius, share of the image diagonal
 ACQ_RANSAC_ITERATIONS = 5000
 ACQ_CLUSTERS = 3           # shift clusters tried, each refined; the most inliers wins
+# Bounded cost while acquiring: landmarks x search-window area at most this
+# many correlation positions (about 1-2 s of one core), at least
+# ACQ_MIN_LANDMARKS landmarks.
+ACQ_WORK_POSITIONS = 3e8
+ACQ_MIN_LANDMARKS = 40
 
 
 class Pose:
@@ -559,7 +565,11 @@ class Baseline:
         # A coarse stage that finds no pose is tried again one level finer.
         best, best_n = None, 0
         for kk in range(k, -1, -1):
-            stages = [(kk, int(math.ceil(radius_full / (1 << kk))), acq, margin_px, cap)]
+            radius_k = int(math.ceil(radius_full / (1 << kk)))
+            cap_k = cap
+            if acq:
+                cap_k = int(min(cap, max(ACQ_MIN_LANDMARKS, ACQ_WORK_POSITIONS / (2 * radius_k + 1) ** 2)))
+            stages = [(kk, radius_k, acq, margin_px, cap_k)]
             if kk >= 3:
                 stages.append((1, FINE_RADIUS_PX, False, 0.0, self.max_landmarks))
             if kk > 0 or acq:

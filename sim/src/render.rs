@@ -756,6 +756,19 @@ mod tests {
         }
     }
 
+    /// The crossing of `f` from above to below zero in `[a, b]`, by `n` halvings.
+    fn bisect(f: &impl Fn(f64) -> f64, mut a: f64, mut b: f64, n: usize) -> f64 {
+        for _ in 0..n {
+            let m = 0.5 * (a + b);
+            if f(m) > 0.0 {
+                a = m
+            } else {
+                b = m
+            }
+        }
+        0.5 * (a + b)
+    }
+
     /// Brute force: tiny fixed steps along the ray with the exact geodetic
     /// conversion, then bisection.
     fn brute_force(sc: &Scene, o: &Vector3<f64>, d: &Vector3<f64>, s_max: f64) -> Option<f64> {
@@ -767,16 +780,7 @@ mod tests {
         let mut s = 0.0;
         while s < s_max {
             if f(s + step) < 0.0 {
-                let (mut a, mut b) = (s, s + step);
-                for _ in 0..60 {
-                    let m = 0.5 * (a + b);
-                    if f(m) > 0.0 {
-                        a = m
-                    } else {
-                        b = m
-                    }
-                }
-                return Some(0.5 * (a + b));
+                return Some(bisect(&f, s, s + step, 60));
             }
             s += step;
         }
@@ -845,16 +849,7 @@ mod tests {
                 let step = (0.5 * fs / (1.0 + t.max_slope)).max(0.5);
                 let fn_ = f(s + step);
                 if fn_ < 0.0 {
-                    let (mut a, mut b) = (s, s + step);
-                    for _ in 0..50 {
-                        let m = 0.5 * (a + b);
-                        if f(m) > 0.0 {
-                            a = m
-                        } else {
-                            b = m
-                        }
-                    }
-                    return Some(0.5 * (a + b));
+                    return Some(bisect(&f, s, s + step, 50));
                 }
                 (s, fs) = (s + step, fn_);
             }

@@ -1725,6 +1725,25 @@ mod tests {
                 "read_noise",
             ),
             (only(|r| r.vignetting = Some(Vignetting { strength: -0.1 })), "vignetting.strength"),
+            (
+                only(|r| r.photometric = Some(Photometric { contrast: -2.0, ..Default::default() })),
+                "realism.photometric.contrast",
+            ),
+            (
+                only(|r| r.spectral = Some(Spectral { weights: [0.5, -0.1, 0.2] })),
+                "realism.spectral.weights[1]",
+            ),
+            (only(|r| r.spectral = Some(Spectral { weights: [0.0; 3] })), "realism.spectral.weights (sum)"),
+            (
+                only(|r| r.brightness_field = Some(BrightnessField { amplitude: 1.5, ..Default::default() })),
+                "realism.brightness_field.amplitude",
+            ),
+            (
+                only(|r| {
+                    r.brightness_field = Some(BrightnessField { scale_m: f64::NAN, ..Default::default() })
+                }),
+                "realism.brightness_field.scale_m",
+            ),
             (only(|r| r.motion_blur = Some(MotionBlur { samples: 0, ..Default::default() })), "blur.samples"),
             (
                 only(|r| r.cords = Some(Cords { sway_period_s: 0.0, ..Default::default() })),

@@ -390,7 +390,6 @@ fn run_simulate(a: SimulateArgs) -> anyhow::Result<()> {
             dems: a.dems,
             dem_vertical: vertical(a.dem_vertical),
             geoid: a.geoid,
-            spectral_weights: None,
         },
         scenario: a.scenario,
         out: a.out,

@@ -1375,13 +1375,12 @@ fn degraded_dem_differs_from_the_rendered_one_by_the_stated_amount() {
 fn spectral_weights_make_the_camera_luminance_from_the_ortho_bands() {
     let dir = tempfile::tempdir().unwrap();
     let (ortho, dem) = common::synth(dir.path(), 300, 5.0, 440000.0, 6);
-    let sources = |weights: Option<[f32; 3]>| trn_sim::SceneSources {
+    let sources = trn_sim::SceneSources {
         ortho: ortho.clone(),
         ortho_bands: None,
         dems: vec![dem.clone()],
         dem_vertical: Some(trn_builder::DemVertical::Ellipsoid),
         geoid: None,
-        spectral_weights: weights,
     };
     // The ortho's bands read by GDAL: the camera's grey level is their weighted sum.
     let ds = Dataset::open(&ortho).unwrap();
@@ -1389,8 +1388,8 @@ fn spectral_weights_make_the_camera_luminance_from_the_ortho_bands() {
     let (r, g, b) = (band(1), band(2), band(3));
     let w = ds.raster_size().0;
     let weights = [0.2f32, 0.5, 0.3];
-    let scene = trn_sim::load_scene(&sources(Some(weights))).unwrap();
-    let luma = trn_sim::load_scene(&sources(None)).unwrap();
+    let scene = trn_sim::load_scene(&sources, Some(weights)).unwrap();
+    let luma = trn_sim::load_scene(&sources, None).unwrap();
     let mut differs = 0;
     for (x, y) in [(3usize, 7usize), (120, 45), (250, 260), (297, 2), (17, 199)] {
         let k = y * w + x;
@@ -1410,7 +1409,7 @@ fn spectral_weights_make_the_camera_luminance_from_the_ortho_bands() {
         .output()
         .unwrap();
     assert!(o.status.success());
-    let err = trn_sim::load_scene(&trn_sim::SceneSources { ortho: grey.clone(), ..sources(Some(weights)) })
+    let err = trn_sim::load_scene(&trn_sim::SceneSources { ortho: grey.clone(), ..sources }, Some(weights))
         .unwrap_err()
         .to_string();
     assert!(err.contains("grey.tif") && err.contains("realism.spectral"), "{err}");

@@ -126,26 +126,18 @@ pub fn correlated_noise(width: usize, height: usize, sigma_cells: f64, rms: f64,
 /// Reads `opts.dem`, degrades it and writes `opts.out` (atomically).
 pub fn degrade_dem(opts: &DemVariantOptions) -> Result<DemVariantReport, SimError> {
     let bad = |what: &str| SimError::Input { path: opts.dem.clone(), reason: what.to_string() };
-    if let Some(c) = opts.cell_m {
-        if !(c.is_finite() && c > 0.0) {
-            return Err(SimError::Input {
-                path: "--cell-m".into(),
-                reason: format!("must be > 0 (got {c})"),
-            });
+    let check = |option: &'static str, v: f64, ok: bool, want: &str| {
+        if v.is_finite() && ok {
+            Ok(())
+        } else {
+            Err(SimError::Option { option, reason: format!("must be {want} (got {v})") })
         }
+    };
+    if let Some(c) = opts.cell_m {
+        check("--cell-m", c, c > 0.0, "> 0")?;
     }
-    if !(opts.noise_rms_m.is_finite() && opts.noise_rms_m >= 0.0) {
-        return Err(SimError::Input {
-            path: "--noise-m".into(),
-            reason: format!("must be >= 0 (got {})", opts.noise_rms_m),
-        });
-    }
-    if !(opts.noise_scale_m.is_finite() && opts.noise_scale_m >= 0.0) {
-        return Err(SimError::Input {
-            path: "--noise-scale-m".into(),
-            reason: format!("must be >= 0 (got {})", opts.noise_scale_m),
-        });
-    }
+    check("--noise-m", opts.noise_rms_m, opts.noise_rms_m >= 0.0, ">= 0")?;
+    check("--noise-scale-m", opts.noise_scale_m, opts.noise_scale_m >= 0.0, ">= 0")?;
     let (ds, info) = source::inspect(&opts.dem)?;
     let band = ds.rasterband(1).map_err(|e| bad(&gdal_reason(&e, &opts.dem)))?;
     let nodata = band.no_data_value();

@@ -53,6 +53,8 @@ use crate::rng::Rng;
 pub enum SimError {
     #[error("{}: {reason}", path.display())]
     Input { path: PathBuf, reason: String },
+    #[error("invalid option {option}: {reason}")]
+    Option { option: &'static str, reason: String },
     #[error(transparent)]
     Build(#[from] trn_builder::BuildError),
     #[error(transparent)]
@@ -98,11 +100,7 @@ pub fn simulate(opts: &SimOptions, cancel: &AtomicBool) -> Result<SimReport, Sim
     let t_start = Instant::now();
     let scenario = Scenario::load(&opts.scenario)?;
     check_out(&opts.out)?;
-    let sources = SceneSources {
-        spectral_weights: scenario.realism.spectral.as_ref().map(|s| s.normalized()),
-        ..opts.sources.clone()
-    };
-    let scene = load_scene(&sources)?;
+    let scene = load_scene(&opts.sources, scenario.realism.spectral.as_ref().map(|s| s.normalized()))?;
     let e = &scene.ortho_extent;
     let (lat, lon) = match scenario.origin {
         Some(o) => (o.lat, o.lon),

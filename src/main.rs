@@ -75,23 +75,37 @@ struct BuildArgs {
     /// Geoid grid (GDAL-readable: .gtx, .tif) for --dem-vertical geoid; default for EGM96 is Debian's.
     #[arg(long)]
     geoid: Option<PathBuf>,
-    /// Template side in pixels.
+    /// Largest template side in pixels (coarse levels).
     #[arg(long, default_value_t = 32)]
     template_size: u32,
-    /// Landmark spacing: one cell of this many template pixels gets --per-cell landmarks.
-    #[arg(long, default_value_t = 64)]
-    spacing: u32,
+    /// Smallest template side: the finest level holds half-size templates at
+    /// the ortho's resolution when they are at least this big.
+    #[arg(long, default_value_t = 12)]
+    min_template_size: u32,
+    /// Landmark spacing: one cell of this many template pixels gets
+    /// --per-cell landmarks (default: half the level's template size).
+    #[arg(long)]
+    spacing: Option<u32>,
     #[arg(long, default_value_t = 1)]
     per_cell: usize,
-    /// Number of levels (GSD doubles per level); default: up to --max-gsd.
+    /// Number of levels (template footprint doubles per level); default: as
+    /// many as the served camera resolutions need.
     #[arg(long)]
     levels: Option<u8>,
-    /// Coarsest level GSD (m) when --levels is not given.
-    #[arg(long, default_value_t = 64.0)]
-    max_gsd: f64,
-    /// GSD of level 0 (m); default: the coarsest ortho pixel size.
+    /// GSD of the finest pyramid step (m); default: the coarsest ortho pixel size.
     #[arg(long)]
     base_gsd: Option<f64>,
+    /// Size the database for this camera (camera.json of the flight format)
+    /// flown at --altitude; default: cameras of 160x120 to 1024x768 pixels,
+    /// 20-60 deg fields of view, 2-40 km above the terrain.
+    #[arg(long, requires = "altitude")]
+    camera: Option<PathBuf>,
+    /// Heights above the terrain the mission flies, MIN..MAX metres (with --camera).
+    #[arg(long, requires = "camera", value_parser = parse_altitude)]
+    altitude: Option<(f64, f64)>,
+    /// Largest angle of the camera's boresight from straight down (deg, with --camera).
+    #[arg(long, requires = "camera", default_value_t = 0.0)]
+    max_off_nadir: f64,
     /// Minimum grey-level standard deviation of a template.
     #[arg(long, default_value_t = 6.0)]
     min_contrast: f32,
@@ -104,9 +118,14 @@ struct BuildArgs {
     /// Highest NCC of a template against its surroundings (away from itself).
     #[arg(long, default_value_t = 0.9)]
     max_second_peak: f32,
-    /// Largest RMS terrain distance from the template plane, in GSDs.
+    /// Largest RMS terrain distance from the template plane, in GSDs
+    /// (default: none; relief is modelled by the template's height grid).
+    #[arg(long)]
+    max_relief: Option<f64>,
+    /// Largest share of a template its own relief may hide at the served
+    /// view angles (self-occlusion).
     #[arg(long, default_value_t = 0.5)]
-    max_relief: f64,
+    max_hidden: f64,
     /// Worker threads (default: all cores).
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=1024))]
     threads: Option<u32>,
@@ -334,19 +353,45 @@ fn run_build(a: BuildArgs) -> anyhow::Result<()> {
     o.dem_vertical = vertical(a.dem_vertical);
     o.geoid = a.geoid;
     o.template_size = a.template_size;
+    o.min_template_size = a.min_template_size;
     o.spacing_px = a.spacing;
     o.per_cell = a.per_cell;
     o.levels = a.levels;
-    o.max_gsd_m = a.max_gsd;
     o.base_gsd_m = a.base_gsd;
+    if let (Some(camera), Some((lo, hi))) = (&a.camera, a.altitude) {
+        let c = trn_flight::read_camera(camera)?.model;
+        o.mission = Some(trn_builder::sizing::Mission {
+            width_px: c.width,
+            height_px: c.height,
+            fx: c.fx,
+            fy: c.fy,
+            altitude_min_m: lo,
+            altitude_max_m: hi,
+            max_off_nadir_deg: a.max_off_nadir,
+        });
+    }
     o.min_contrast_std = a.min_contrast;
     o.min_shi_tomasi = a.min_shi_tomasi;
     o.search_radius_px = a.search_radius;
     o.max_second_peak = a.max_second_peak;
     o.max_relief_gsd = a.max_relief;
+    o.max_hidden_share = a.max_hidden;
     let report = trn_builder::build(&o, &cancel)?;
     println!("{}", serde_json::to_string_pretty(&report)?);
     Ok(())
+}
+
+/// `MIN..MAX` metres, e.g. `3000..9000`.
+fn parse_altitude(s: &str) -> Result<(f64, f64), String> {
+    let (lo, hi) =
+        s.split_once("..").ok_or_else(|| format!("{s:?}: expected MIN..MAX metres, e.g. 3000..9000"))?;
+    let num =
+        |v: &str| v.trim().parse::<f64>().map_err(|_| format!("{s:?}: {v:?} is not a number of metres"));
+    let (lo, hi) = (num(lo)?, num(hi)?);
+    if !(lo.is_finite() && hi.is_finite() && lo > 0.0 && hi >= lo) {
+        return Err(format!("{s:?}: needs 0 < MIN <= MAX"));
+    }
+    Ok((lo, hi))
 }
 
 fn vertical(v: Option<VerticalArg>) -> Option<DemVertical> {

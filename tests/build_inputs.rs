@@ -82,6 +82,13 @@ fn build(dir: &Path, name: &str, orthos: &[&Path], dems: &[&Path], extra: &[&str
         args.extend(["--dem", s(d)]);
     }
     args.extend(["--out", s(&out)]);
+    // These tests are about reading inputs (CRSs, datums, bands, mosaics), and
+    // compare builds template by template: one template size on a sparse grid
+    // keeps them fast and their counts stable (the default ladder and density
+    // are tested in build_samples.rs and by the benchmarks).
+    if !extra.contains(&"--spacing") {
+        args.extend(["--min-template-size", "32", "--spacing", "64"]);
+    }
     args.extend_from_slice(extra);
     let before: Vec<PathBuf> = std::fs::read_dir(dir).unwrap().map(|e| e.unwrap().path()).collect();
     let o = common::run(&args);
@@ -128,9 +135,23 @@ fn centre_distance_m(a: &Template, b: &Template) -> f64 {
 
 /// Pairs (a, b) of templates of one level whose centres lie within 5 cm.
 fn twins<'a>(a: &'a [Template], b: &'a [Template]) -> Vec<(&'a Template, &'a Template)> {
+    // Buckets of about a metre: a twin is within 5 cm, so in the same or a neighbouring bucket.
+    let key = |t: &Template| {
+        (t.level, (t.center.lat_deg * 1e5).floor() as i64, (t.center.lon_deg * 1e5).floor() as i64)
+    };
+    let mut index: std::collections::HashMap<(u8, i64, i64), Vec<&Template>> = Default::default();
+    for y in b {
+        index.entry(key(y)).or_default().push(y);
+    }
     a.iter()
         .filter_map(|x| {
-            b.iter().find(|y| y.level == x.level && centre_distance_m(x, y) < 0.05).map(|y| (x, y))
+            let (l, la, lo) = key(x);
+            (-1..=1)
+                .flat_map(|i| (-1..=1).map(move |j| (l, la + i, lo + j)))
+                .filter_map(|k| index.get(&k))
+                .flatten()
+                .find(|y| centre_distance_m(x, y) < 0.05)
+                .map(|y| (x, *y))
         })
         .collect()
 }
@@ -1017,8 +1038,12 @@ fn egm96_undulation(points: &[(f64, f64)], horizontal: &str) -> Vec<f64> {
         .stderr(Stdio::piped())
         .spawn()
         .unwrap_or_else(|e| panic!("cannot run gdaltransform ({e}): install gdal-bin"));
-    child.stdin.take().unwrap().write_all(input.as_bytes()).unwrap();
+    // Written from a thread: gdaltransform answers as it reads, and a full
+    // stdout pipe would otherwise block both sides.
+    let mut stdin = child.stdin.take().unwrap();
+    let writer = std::thread::spawn(move || stdin.write_all(input.as_bytes()));
     let o = child.wait_with_output().unwrap();
+    writer.join().unwrap().unwrap();
     assert!(o.status.success(), "gdaltransform failed: {}", String::from_utf8_lossy(&o.stderr));
     let text = String::from_utf8_lossy(&o.stdout);
     let n: Vec<f64> = text

@@ -119,7 +119,18 @@ fn check_sample(s: &Sample) {
     })
     .unwrap();
     assert!(templates.len() >= 10, "{}: only {} templates", s.ortho, templates.len());
-    for t in &templates {
+    // Every level, at most ~300 templates in all (each is re-read through GDAL).
+    let step = templates.len().div_ceil(300);
+    let levels: std::collections::BTreeSet<u8> = templates.iter().map(|t| t.level).collect();
+    let picked: Vec<&Template> = templates
+        .iter()
+        .enumerate()
+        .filter(|(i, t)| i % step == 0 || templates.iter().position(|u| u.level == t.level) == Some(*i))
+        .map(|(_, t)| t)
+        .collect();
+    assert!(levels.iter().all(|l| picked.iter().any(|t| t.level == *l)));
+    let finest_gsd = templates.iter().map(|t| t.gsd_m).fold(f64::INFINITY, f64::min);
+    for t in picked {
         let (img, ok, size) = reread(&ortho, t, s.bands);
         let tw = t.width_px as usize;
         let tpl: Vec<f64> = t.pixels.iter().map(|&v| v as f64).collect();
@@ -153,7 +164,11 @@ fn check_sample(s: &Sample) {
         let ox = bx as f64 + sub(at(bxi - 1, byi), at(bxi + 1, byi)) - MARGIN as f64;
         let oy = by as f64 + sub(at(bxi, byi - 1), at(bxi, byi + 1)) - MARGIN as f64;
         let off = ox.hypot(oy);
-        assert!(peak > 0.95, "template {} (level {}): NCC peak {peak:.3}", t.id, t.level);
+        // GDAL's reprojection here samples the nearest pixel, the builder a 2x2
+        // box pyramid: at 4x and more below the ortho's resolution the two
+        // low-pass differently.
+        let min_peak = if t.gsd_m >= 3.5 * finest_gsd { 0.9 } else { 0.95 };
+        assert!(peak > min_peak, "template {} (level {}, {} m): NCC peak {peak:.3}", t.id, t.level, t.gsd_m);
         assert!(
             off < 1.0,
             "template {} (level {}): found {off:.2} px away ({ox:.2}, {oy:.2})",
@@ -212,7 +227,7 @@ fn rmnp_templates_are_found_in_the_ortho() {
         ortho: "rmnp-rgb.tif",
         dem: "rmnp-dem.tif",
         bands: &[(1, 0.299), (2, 0.587), (3, 0.114)],
-        extra: &["--dem-vertical", "egm96", "--template-size", "16", "--spacing", "24"],
+        extra: &["--dem-vertical", "egm96"],
     });
 }
 
@@ -222,15 +237,28 @@ fn olinda_landsat_templates_are_found_in_the_ortho() {
         ortho: "L7_ETMs.tif",
         dem: "olinda_dem_utm25s.tif",
         bands: &[(3, 0.299), (2, 0.587), (1, 0.114)],
-        extra: &[
-            "--ortho-bands",
-            "3,2,1",
-            "--dem-vertical",
-            "egm96",
-            "--template-size",
-            "16",
-            "--spacing",
-            "24",
-        ],
+        extra: &["--ortho-bands", "3,2,1", "--dem-vertical", "egm96"],
+    });
+}
+
+/// The realistic worlds (issue #11's fetch): default builds succeed and
+/// their templates are where they say.
+#[test]
+fn sierra_draped_landsat_templates_are_found_in_the_ortho() {
+    check_sample(&Sample {
+        ortho: "sierra-ortho-draped.tif",
+        dem: "sierra-dem.tif",
+        bands: &[(3, 0.299), (2, 0.587), (1, 0.114)],
+        extra: &["--ortho-bands", "3,2,1", "--dem-vertical", "egm96"],
+    });
+}
+
+#[test]
+fn great_salt_lake_landsat_templates_are_found_in_the_ortho() {
+    check_sample(&Sample {
+        ortho: "gsl-landsat7.tif",
+        dem: "gsl-dem-draped.tif",
+        bands: &[(3, 0.299), (2, 0.587), (1, 0.114)],
+        extra: &["--ortho-bands", "3,2,1", "--dem-vertical", "egm96"],
     });
 }

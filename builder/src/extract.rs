@@ -42,8 +42,14 @@ pub struct ExtractParams {
     pub gsd_m: f64,
     pub size_px: u32,
     pub height_grid_n: u32,
-    /// Largest RMS distance of the terrain from its plane (m).
-    pub max_plane_residual_m: f64,
+    /// Largest RMS distance of the terrain from its plane (m); `None`: relief
+    /// is modelled by the height grid, not limited.
+    pub max_plane_residual_m: Option<f64>,
+    /// Largest view angle from the vertical the database serves, and the
+    /// largest share of the height grid its own relief may hide there from
+    /// its best side (views come from every azimuth).
+    pub max_view_deg: f64,
+    pub max_hidden_share: f64,
     pub source: u32,
 }
 
@@ -53,6 +59,9 @@ pub enum Reject {
     Transform,
     NoDem,
     Relief,
+    /// The template's own relief hides too much of it at the served view
+    /// angles, even from its best side.
+    Occluded,
     OutsideWindow,
     Nodata,
 }
@@ -109,7 +118,7 @@ pub fn extract(
         .map(|(&(e, nn), &h)| h - h_centre - e * e / (2.0 * rn) - nn * nn / (2.0 * rm))
         .collect();
     let (normal, rms) = fit_plane(&grid_en, &heights);
-    if rms > p.max_plane_residual_m {
+    if p.max_plane_residual_m.is_some_and(|max| rms > max) {
         return Err(Reject::Relief);
     }
     let height_grid = HeightGrid {
@@ -117,6 +126,9 @@ pub fn extract(
         spacing_m: spacing,
         heights_m: heights.iter().map(|&h| h as f32).collect(),
     };
+    if height_grid.hidden_share_best_side(p.max_view_deg) > p.max_hidden_share {
+        return Err(Reject::Occluded);
+    }
 
     // Template pixels: the affine map walks the window in fixed steps. The grid
     // is inside the window when its four corners are (the map is affine).

@@ -13,11 +13,12 @@ pub mod error;
 pub mod extract;
 pub mod pyramid;
 pub mod select;
+pub mod sizing;
 pub mod source;
 pub mod synth;
 pub mod terrain;
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::SyncSender;
@@ -34,7 +35,8 @@ use trn_landmark::{GeoBox, Template};
 pub use error::{BuildError, Result};
 use extract::{ExtractParams, Reject, WindowGeo};
 use pyramid::{LevelFile, OrthoReader, Window};
-use select::{Core, LumWindow, SelectParams};
+use select::{CellStats, Core, LumWindow, SelectParams};
+use sizing::{GsdRange, LevelSpec, Mission};
 use source::{Luminance, RasterInfo, VerticalDatum};
 use terrain::{DemSampler, DemSpec};
 
@@ -59,26 +61,42 @@ pub struct BuildOptions {
     pub ortho_bands: Option<Vec<usize>>,
     pub dem_vertical: Option<DemVertical>,
     pub geoid: Option<PathBuf>,
-    /// Template side (pixels).
+    /// Largest template side (pixels): coarse levels' templates.
     pub template_size: u32,
-    /// Side of the cell that gets `per_cell` landmarks, in template pixels.
-    pub spacing_px: u32,
+    /// Smallest template side (pixels): the finest level holds templates of
+    /// half `template_size` at the ortho's resolution when they are at least
+    /// this big (see [`sizing::ladder`]).
+    pub min_template_size: u32,
+    /// Side of the cell that gets `per_cell` landmarks, in the level's
+    /// template pixels; `None`: half the level's template size (four
+    /// landmark cells per template footprint: templates overlap).
+    pub spacing_px: Option<u32>,
     pub per_cell: usize,
-    /// Number of levels; `None`: from the base GSD up to `max_gsd_m`.
+    /// Number of levels; `None`: as many as the served camera resolutions need.
     pub levels: Option<u8>,
-    pub max_gsd_m: f64,
-    /// GSD of level 0; `None`: the coarsest ortho's pixel size.
+    /// GSD of the finest pyramid step; `None`: the coarsest ortho's pixel size.
     pub base_gsd_m: Option<f64>,
+    /// The mission the database is sized for; `None`: the default envelope
+    /// ([`sizing::DEFAULT_ENVELOPE`]).
+    pub mission: Option<Mission>,
     pub min_contrast_std: f32,
     pub min_shi_tomasi: f32,
     pub max_saturated: f32,
     /// Uniqueness search radius (template pixels) and highest allowed second NCC peak.
     pub search_radius_px: u32,
     pub max_second_peak: f32,
-    /// Largest RMS terrain distance from the template's plane, in GSDs.
-    pub max_relief_gsd: f64,
+    /// Largest RMS terrain distance from the template's plane, in GSDs;
+    /// `None` (default): relief is modelled by the height grid.
+    pub max_relief_gsd: Option<f64>,
+    /// Largest share of a template its own relief may hide at the served
+    /// view angles.
+    pub max_hidden_share: f64,
     pub height_grid_n: u32,
 }
+
+/// View angle from the vertical up to which a database built without a
+/// mission keeps landmarks visible (self-occlusion test).
+pub const DEFAULT_MAX_VIEW_DEG: f64 = 60.0;
 
 impl BuildOptions {
     pub fn new(orthos: Vec<PathBuf>, dems: Vec<PathBuf>, out: PathBuf) -> Self {
@@ -90,19 +108,44 @@ impl BuildOptions {
             dem_vertical: None,
             geoid: None,
             template_size: 32,
-            spacing_px: 64,
+            min_template_size: 12,
+            spacing_px: None,
             per_cell: 1,
             levels: None,
-            max_gsd_m: 64.0,
             base_gsd_m: None,
+            mission: None,
             min_contrast_std: 6.0,
             min_shi_tomasi: 2.0,
             max_saturated: 0.1,
             search_radius_px: 8,
             max_second_peak: 0.9,
-            max_relief_gsd: 0.5,
+            max_relief_gsd: None,
+            max_hidden_share: 0.5,
             height_grid_n: 9,
         }
+    }
+
+    /// Cell side (template pixels) of a level of `size_px` templates.
+    pub fn spacing(&self, size_px: u32) -> u32 {
+        self.spacing_px.unwrap_or((size_px / 2).max(1))
+    }
+
+    /// Camera resolutions the database is sized for.
+    pub fn gsd_range(&self) -> GsdRange {
+        match &self.mission {
+            Some(m) => m.gsd_range(),
+            None => GsdRange::of_envelope(&sizing::DEFAULT_ENVELOPE),
+        }
+    }
+
+    /// Largest view angle from the vertical the database serves.
+    pub fn max_view_deg(&self) -> f64 {
+        self.mission.as_ref().map_or(DEFAULT_MAX_VIEW_DEG, Mission::max_view_deg)
+    }
+
+    /// The level ladder over a finest pyramid step of `base_gsd_m`.
+    pub fn ladder(&self, base_gsd_m: f64) -> Vec<LevelSpec> {
+        sizing::ladder(base_gsd_m, self.min_template_size, self.template_size, &self.gsd_range(), self.levels)
     }
 
     fn check(&self) -> Result<()> {
@@ -116,7 +159,10 @@ impl BuildOptions {
         if !(8..=512).contains(&self.template_size) {
             return bad("--template-size", "must be 8..=512 pixels");
         }
-        if self.spacing_px < self.template_size / 2 {
+        if !(8..=self.template_size).contains(&self.min_template_size) {
+            return bad("--min-template-size", "must be 8 pixels up to --template-size");
+        }
+        if self.spacing_px.is_some_and(|s| s < self.template_size / 2) {
             return bad("--spacing", "must be at least half the template size");
         }
         if self.per_cell == 0 {
@@ -131,11 +177,25 @@ impl BuildOptions {
             }
         }
         let positive = |v: f64| v.is_finite() && v > 0.0;
-        if !positive(self.max_relief_gsd) {
+        if self.max_relief_gsd.is_some_and(|v| !positive(v)) {
             return bad("--max-relief", "must be a positive number of GSDs");
         }
-        if !positive(self.max_gsd_m) {
-            return bad("--max-gsd", "must be a positive number of metres");
+        if !(self.max_hidden_share.is_finite() && (0.0..=1.0).contains(&self.max_hidden_share)) {
+            return bad("--max-hidden", "must be a share in 0..=1");
+        }
+        if let Some(m) = &self.mission {
+            if !(m.altitude_min_m.is_finite()
+                && m.altitude_min_m > 0.0
+                && m.altitude_max_m >= m.altitude_min_m)
+            {
+                return bad("--altitude", "must be MIN..MAX metres above the terrain, 0 < MIN <= MAX");
+            }
+            if !(m.max_off_nadir_deg.is_finite() && (0.0..90.0).contains(&m.max_off_nadir_deg)) {
+                return bad("--max-off-nadir", "must be 0..90 degrees");
+            }
+            if !(positive(m.fx) && positive(m.fy) && m.width_px > 0 && m.height_px > 0) {
+                return bad("--camera", "needs a positive size and focal length");
+            }
         }
         if !(self.min_contrast_std.is_finite() && self.min_contrast_std >= 0.0) {
             return bad("--min-contrast", "must be a number >= 0");
@@ -164,11 +224,67 @@ impl BuildOptions {
 pub struct BuildReport {
     pub out: PathBuf,
     pub templates: usize,
-    /// (level, GSD m, count)
-    pub levels: Vec<(u8, f64, usize)>,
+    pub levels: Vec<LevelReport>,
+    /// Camera resolutions (m per image pixel) the database was sized for,
+    /// and those at which some level spans 12-48 image pixels.
+    pub sized_for_gsd_m: GsdRange,
+    pub serves_gsd_m: Option<GsdRange>,
+    pub mission: Option<Mission>,
+    /// View angle from the vertical of the self-occlusion test.
+    pub max_view_deg: f64,
+    /// Candidates that passed texture and uniqueness and were offered to extraction.
     pub candidates: usize,
-    pub rejected: HashMap<String, usize>,
+    /// Extraction rejections by reason, all levels.
+    pub rejected: BTreeMap<String, usize>,
     pub seconds: f64,
+}
+
+/// One level of a build.
+#[derive(Clone, Debug, Serialize)]
+pub struct LevelReport {
+    pub level: u8,
+    pub gsd_m: f64,
+    pub template_px: u32,
+    pub footprint_m: f64,
+    pub templates: usize,
+    /// Ortho area with usable pixels (selection cells with a valid,
+    /// unsaturated window), km², and landmarks per km² of it.
+    pub covered_km2: f64,
+    pub per_km2: f64,
+    /// Camera resolutions at which the level's templates span 12-48 pixels.
+    pub serves_gsd_m: GsdRange,
+    /// Covered cells left without a landmark, by reason: `no_texture`,
+    /// `not_unique`, `refused` (every unique candidate rejected at extraction).
+    pub empty_cells: BTreeMap<String, usize>,
+    /// Extraction rejections by reason (a cell may still have taken its next candidate).
+    pub rejected: BTreeMap<String, usize>,
+}
+
+/// Per level of one ortho group: cells, rejections, area.
+#[derive(Clone, Debug, Default)]
+struct LevelTally {
+    cells: CellStats,
+    cell_area_m2: f64,
+    covered_m2: f64,
+    rejected: HashMap<Reject, usize>,
+}
+
+impl LevelTally {
+    fn add(&mut self, cells: CellStats, rejected: HashMap<Reject, usize>) {
+        self.covered_m2 += cells.covered as f64 * self.cell_area_m2;
+        self.cells += cells;
+        for (k, v) in rejected {
+            *self.rejected.entry(k).or_default() += v;
+        }
+    }
+
+    fn merge(&mut self, o: &LevelTally) {
+        self.covered_m2 += o.covered_m2;
+        self.cells += o.cells;
+        for (k, v) in &o.rejected {
+            *self.rejected.entry(*k).or_default() += v;
+        }
+    }
 }
 
 /// An ortho mosaic: files with one CRS and pixel size, read as one raster.
@@ -238,20 +354,37 @@ pub fn build(opts: &BuildOptions, cancel: &AtomicBool) -> Result<BuildReport> {
             reason: format!("{base_gsd} m is finer than half the finest ortho pixel ({finest:.3} m)"),
         });
     }
-    let levels = opts.levels.unwrap_or_else(|| {
-        let mut n = 1u8;
-        while n < 12 && base_gsd * 2f64.powi(n as i32) <= opts.max_gsd_m {
-            n += 1;
+    let specs = opts.ladder(base_gsd);
+    let range = opts.gsd_range();
+    let serves = sizing::served(&specs);
+    info!(
+        "sized for camera resolutions {:.2}..{:.1} m/px; {} levels: {}",
+        range.finest_m,
+        range.coarsest_m,
+        specs.len(),
+        specs
+            .iter()
+            .map(|l| format!("{} px at {} m ({:.0} m)", l.size_px, l.gsd_m, l.footprint_m()))
+            .collect::<Vec<_>>()
+            .join(", ")
+    );
+    if let Some(s) = serves {
+        if s.finest_m > range.finest_m * 1.001 {
+            warn!(
+                "the ortho's pixels ({base_gsd} m) cannot serve camera resolutions finer than {:.2} m/px \
+                 (asked for {:.2}): templates will span more than {} image pixels there",
+                s.finest_m,
+                range.finest_m,
+                sizing::MAX_SPAN_PX
+            );
         }
-        n
-    });
-    info!("levels: {levels}, GSD {base_gsd} m x 2^level");
+    }
 
     // The database is written to a temporary file next to the output by its own
     // thread while tiles are processed, and renamed into place only on success.
     let tmp_db = work.path().join("landmarks.gpkg");
     let mut writer = trn_store::DbWriter::create(&tmp_db)?;
-    for (k, v) in metadata(opts, &groups, &dems, base_gsd, levels) {
+    for (k, v) in metadata(opts, &groups, &dems, base_gsd, &specs) {
         writer.set_metadata(&k, &v)?;
     }
     let (tx, rx) = std::sync::mpsc::sync_channel::<Vec<Template>>(64);
@@ -269,9 +402,9 @@ pub fn build(opts: &BuildOptions, cancel: &AtomicBool) -> Result<BuildReport> {
         }
         Ok(writer.finish()?)
     });
-    let selected = select_all(opts, &groups, &dems, base_gsd, levels, work.path(), cancel, &tx);
+    let selected = select_all(opts, &groups, &dems, base_gsd, &specs, work.path(), cancel, &tx);
     drop(tx);
-    let (candidates, rejected) = match selected {
+    let tallies = match selected {
         Ok(r) => r,
         Err(e) => {
             abort.store(true, Ordering::Relaxed);
@@ -284,23 +417,66 @@ pub fn build(opts: &BuildOptions, cancel: &AtomicBool) -> Result<BuildReport> {
     };
     tracing::debug!("selection done at {:.2} s", started.elapsed().as_secs_f64());
     let summary = writer_thread.join().map_err(|_| BuildError::WriterStopped)??;
-    info!("{candidates} candidates passed texture and uniqueness; rejected after: {rejected:?}");
+    let mut rejected: BTreeMap<String, usize> = BTreeMap::new();
+    let mut candidates = 0;
+    let per_level: Vec<LevelReport> = specs
+        .iter()
+        .zip(&tallies)
+        .map(|(s, t)| {
+            let n = summary.levels.iter().find(|l| l.level == s.level).map(|l| l.count as usize).unwrap_or(0);
+            let level_rejected: BTreeMap<String, usize> =
+                t.rejected.iter().map(|(k, v)| (format!("{k:?}"), *v)).collect();
+            for (k, v) in &level_rejected {
+                *rejected.entry(k.clone()).or_default() += v;
+            }
+            candidates += n + t.rejected.values().sum::<usize>();
+            let km2 = t.covered_m2 / 1e6;
+            LevelReport {
+                level: s.level,
+                gsd_m: s.gsd_m,
+                template_px: s.size_px,
+                footprint_m: s.footprint_m(),
+                templates: n,
+                covered_km2: km2,
+                per_km2: if km2 > 0.0 { n as f64 / km2 } else { 0.0 },
+                serves_gsd_m: s.serves(),
+                empty_cells: BTreeMap::from([
+                    ("no_texture".to_string(), t.cells.no_texture),
+                    ("not_unique".to_string(), t.cells.not_unique),
+                    ("refused".to_string(), t.cells.refused),
+                ]),
+                rejected: level_rejected,
+            }
+        })
+        .collect();
+    for l in &per_level {
+        info!(
+            "level {} ({} px at {} m, {:.0} m): {} templates, {:.2} per km² over {:.0} km²; empty cells {:?}; rejected {:?}",
+            l.level,
+            l.template_px,
+            l.gsd_m,
+            l.footprint_m,
+            l.templates,
+            l.per_km2,
+            l.covered_km2,
+            l.empty_cells,
+            l.rejected
+        );
+    }
     if summary.template_count == 0 {
         return Err(BuildError::NoTemplates);
     }
     std::fs::rename(&tmp_db, &opts.out)
         .map_err(|source| BuildError::Io { path: opts.out.clone(), source })?;
 
-    let per_level = (0..levels)
-        .map(|k| {
-            let n = summary.levels.iter().find(|l| l.level == k).map(|l| l.count as usize).unwrap_or(0);
-            (k, base_gsd * 2f64.powi(k as i32), n)
-        })
-        .collect();
     let report = BuildReport {
         out: opts.out.clone(),
         templates: summary.template_count as usize,
         levels: per_level,
+        sized_for_gsd_m: range,
+        serves_gsd_m: serves,
+        mission: opts.mission,
+        max_view_deg: opts.max_view_deg(),
         candidates,
         rejected,
         seconds: started.elapsed().as_secs_f64(),
@@ -317,22 +493,20 @@ fn select_all(
     groups: &[OrthoGroup],
     dems: &[DemSpec],
     base_gsd: f64,
-    levels: u8,
+    specs: &[LevelSpec],
     work: &Path,
     cancel: &AtomicBool,
     tx: &SyncSender<Vec<Template>>,
-) -> Result<(usize, HashMap<String, usize>)> {
+) -> Result<Vec<LevelTally>> {
     let stream = groups.len() == 1;
     let mut all: Vec<Template> = Vec::new();
-    let mut rejected: HashMap<String, usize> = HashMap::new();
-    let mut candidates = 0usize;
+    let mut tallies = vec![LevelTally::default(); specs.len()];
     for g in groups {
-        let (t, r, c) = build_group(opts, g, dems, base_gsd, levels, work, cancel, stream.then_some(tx))?;
+        let (t, tally) = build_group(opts, g, dems, base_gsd, specs, work, cancel, stream.then_some(tx))?;
         all.extend(t);
-        for (k, v) in r {
-            *rejected.entry(format!("{k:?}")).or_default() += v;
+        for (a, b) in tallies.iter_mut().zip(&tally) {
+            a.merge(b);
         }
-        candidates += c;
     }
     if !stream {
         let before = all.len();
@@ -344,7 +518,7 @@ fn select_all(
             tx.send(std::mem::replace(&mut all, rest)).map_err(|_| BuildError::WriterStopped)?;
         }
     }
-    Ok((candidates, rejected))
+    Ok(tallies)
 }
 
 fn open_dems(opts: &BuildOptions) -> Result<Vec<DemSpec>> {
@@ -577,10 +751,13 @@ impl Worker {
 /// One template level as processed on a pyramid level of a group.
 #[derive(Clone, Copy)]
 struct LevelPlan {
+    /// Index of the level in the ladder.
+    index: usize,
     level: u8,
     /// Pyramid level of the group it runs on (2^p native pixels per pixel).
     pyramid_level: usize,
     gsd_m: f64,
+    size_px: u32,
     select: SelectParams,
 }
 
@@ -590,48 +767,71 @@ fn build_group(
     g: &OrthoGroup,
     dems: &[DemSpec],
     base_gsd: f64,
-    levels: u8,
+    specs: &[LevelSpec],
     work: &Path,
     cancel: &AtomicBool,
     sink: Option<&SyncSender<Vec<Template>>>,
-) -> Result<(Vec<Template>, HashMap<Reject, usize>, usize)> {
+) -> Result<(Vec<Template>, Vec<LevelTally>)> {
     let native = g.info.pixel_dx_m.max(g.info.pixel_dy_m);
-    // Pyramid level p whose pixels are at most as coarse as template level k.
+    // Pyramid level p whose pixels are at most as coarse as the finest step.
     let offset = ((base_gsd / native).log2() + 1e-9).floor().max(0.0) as usize;
-    let top = offset + levels as usize - 1;
-    let t = opts.template_size as f64;
-    let plan_for = |p: usize| -> Option<LevelPlan> {
-        let k = p.checked_sub(offset)?;
-        let gsd = base_gsd * 2f64.powi(k as i32);
+    let top = offset + specs.iter().map(|s| s.gsd_step as usize).max().unwrap_or(0);
+    let plans_for = |p: usize| -> Vec<LevelPlan> {
+        let Some(step) = p.checked_sub(offset) else { return Vec::new() };
         let scale = 2f64.powi(p as i32);
         let (px_w, px_h) = (g.info.pixel_dx_m * scale, g.info.pixel_dy_m * scale);
-        let win_w = (t * gsd / px_w).round().max(4.0) as usize;
-        let win_h = (t * gsd / px_h).round().max(4.0) as usize;
-        let sp = opts.spacing_px as f64 * gsd;
-        let r = (opts.search_radius_px as f64 * gsd / px_w.min(px_h)).round().max(2.0) as usize;
-        Some(LevelPlan {
-            level: k as u8,
-            pyramid_level: p,
-            gsd_m: gsd,
-            select: SelectParams {
-                win_w,
-                win_h,
-                cell_w: (sp / px_w).round().max(2.0) as usize,
-                cell_h: (sp / px_h).round().max(2.0) as usize,
-                per_cell: opts.per_cell,
-                min_shi_tomasi: opts.min_shi_tomasi,
-                min_contrast_std: opts.min_contrast_std,
-                max_saturated: opts.max_saturated,
-                search_radius: r,
-                max_second_peak: opts.max_second_peak,
-            },
-        })
+        specs
+            .iter()
+            .enumerate()
+            .filter(|(_, s)| s.gsd_step as usize == step)
+            .map(|(index, s)| {
+                let (t, gsd) = (s.size_px as f64, s.gsd_m);
+                let win_w = (t * gsd / px_w).round().max(4.0) as usize;
+                let win_h = (t * gsd / px_h).round().max(4.0) as usize;
+                let sp = opts.spacing(s.size_px) as f64 * gsd;
+                let r = (opts.search_radius_px as f64 * gsd / px_w.min(px_h)).round().max(2.0) as usize;
+                LevelPlan {
+                    index,
+                    level: s.level,
+                    pyramid_level: p,
+                    gsd_m: gsd,
+                    size_px: s.size_px,
+                    select: SelectParams {
+                        win_w,
+                        win_h,
+                        cell_w: (sp / px_w).round().max(2.0) as usize,
+                        cell_h: (sp / px_h).round().max(2.0) as usize,
+                        per_cell: opts.per_cell,
+                        min_shi_tomasi: opts.min_shi_tomasi,
+                        min_contrast_std: opts.min_contrast_std,
+                        max_saturated: opts.max_saturated,
+                        search_radius: r,
+                        max_second_peak: opts.max_second_peak,
+                    },
+                }
+            })
+            .collect()
     };
+    let plans: Vec<Vec<LevelPlan>> = (0..=top).map(plans_for).collect();
+    let mut tallies = vec![LevelTally::default(); specs.len()];
+    for ps in &plans {
+        for l in ps {
+            let scale = 2f64.powi(l.pyramid_level as i32);
+            tallies[l.index].cell_area_m2 = l.select.cell_w as f64
+                * g.info.pixel_dx_m
+                * scale
+                * l.select.cell_h as f64
+                * g.info.pixel_dy_m
+                * scale;
+        }
+    }
 
-    // Tiles per pyramid level, for the progress bar.
+    // Tiles per pyramid level, for the progress bar; a whole number of the
+    // largest cell of the levels cut there.
     let sizes: Vec<(usize, usize)> = (0..=top).map(|p| (g.info.width >> p, g.info.height >> p)).collect();
     let tile_dims = |p: usize| -> (usize, usize) {
-        let (cw, ch) = plan_for(p).map(|l| (l.select.cell_w, l.select.cell_h)).unwrap_or((2, 2));
+        let cw = plans[p].iter().map(|l| l.select.cell_w).max().unwrap_or(2);
+        let ch = plans[p].iter().map(|l| l.select.cell_h).max().unwrap_or(2);
         let round = |cell: usize, target: usize| {
             let mut n = target.div_ceil(cell).max(1);
             if (n * cell) % 2 == 1 {
@@ -667,30 +867,26 @@ fn build_group(
     bar.set_message(format!("building {first}{more}"));
 
     let mut templates = Vec::new();
-    let rejects = Mutex::new(HashMap::<Reject, usize>::new());
-    let mut candidates = 0usize;
     let mut prev: Option<LevelFile> = None;
     // One set of GDAL/PROJ handles per thread: opening them costs milliseconds.
     let workers: Vec<Mutex<Option<Worker>>> =
         (0..rayon::current_num_threads().max(1)).map(|_| Mutex::new(None)).collect();
+    let margin_of = |p: usize| plans[p].iter().map(|l| level_margin(*l)).max().unwrap_or(0);
     // A mosaic's VRT reads its files' blocks, of sizes unknown here: GDAL's default then.
     let _cache = (g.files.len() == 1)
-        .then(|| {
-            let margin0 = plan_for(0).map(level_margin).unwrap_or(0);
-            pyramid::ortho_cache_bytes(&g.path, tile_dims(0).1 + 2 * margin0, workers.len())
-        })
+        .then(|| pyramid::ortho_cache_bytes(&g.path, tile_dims(0).1 + 2 * margin_of(0), workers.len()))
         .flatten()
         .map(pyramid::CacheLimit::new);
     for (p, &(w, h)) in sizes.iter().enumerate() {
-        let plan = plan_for(p);
         let next = if p < top {
             Some(LevelFile::create(work, &format!("g{}-p{}", g.index, p + 1), w / 2, h / 2)?)
         } else {
             None
         };
-        let margin = plan.map(level_margin).unwrap_or(0);
+        let margin = margin_of(p);
         let tiles = tiles_of(p);
-        let results: Vec<Result<(Vec<Template>, usize, usize)>> = tiles
+        type TileOut = (Vec<Template>, Vec<(usize, CellStats, HashMap<Reject, usize>)>);
+        let results: Vec<Result<TileOut>> = tiles
             .par_iter()
             .map(|&(x0, x1, y0, y1)| {
                 if cancel.load(Ordering::Relaxed) {
@@ -720,51 +916,54 @@ fn build_group(
                     }
                 }
                 let mut scratch = std::mem::take(&mut worker.select);
-                let (mut t, c) = match plan {
-                    Some(l) => tile_templates(
+                let mut t = Vec::new();
+                let mut stats = Vec::new();
+                for l in &plans[p] {
+                    let (cells, rejected) = tile_templates(
                         &win,
                         margin,
                         (x1 - x0, y1 - y0),
-                        &l,
+                        l,
                         g,
                         worker,
                         &mut scratch,
                         opts,
-                        &rejects,
-                    ),
-                    None => (Vec::new(), 0),
-                };
+                        &mut t,
+                    );
+                    stats.push((l.index, cells, rejected));
+                }
                 (worker.win, worker.select) = (win, scratch);
-                let n = t.len();
                 if let Some(tx) = sink {
                     if !t.is_empty() {
                         tx.send(std::mem::take(&mut t)).map_err(|_| BuildError::WriterStopped)?;
                     }
                 }
                 bar.inc(1);
-                Ok((t, c, n))
+                Ok((t, stats))
             })
             .collect();
-        let mut level_count = 0;
         for r in results {
-            let (t, c, n) = r?;
+            let (t, stats) = r?;
             templates.extend(t);
-            candidates += c;
-            level_count += n;
+            for (i, cells, rejected) in stats {
+                tallies[i].add(cells, rejected);
+            }
         }
-        if let Some(l) = plan {
+        for l in &plans[p] {
             let names: Vec<String> = g.files.iter().map(|f| f.display().to_string()).collect();
             info!(
-                "level {} (GSD {:.2} m): {level_count} templates from {}",
+                "level {} ({} px at {:.2} m): {} templates from {}",
                 l.level,
+                l.size_px,
                 l.gsd_m,
+                tallies[l.index].cells.taken,
                 names.join(", ")
             );
         }
         prev = next;
     }
     bar.finish_and_clear();
-    Ok((templates, rejects.into_inner().unwrap_or_default(), candidates))
+    Ok((templates, tallies))
 }
 
 /// Pixels a tile's window reaches past its core on each side.
@@ -772,6 +971,8 @@ fn level_margin(l: LevelPlan) -> usize {
     (l.select.win_w.max(l.select.win_h) as f64 * 0.75).ceil() as usize + l.select.search_radius + 4
 }
 
+/// Selects and cuts one level's templates on one tile (appended to `out`);
+/// a cell whose best candidate is refused at extraction takes the next.
 #[allow(clippy::too_many_arguments)]
 fn tile_templates(
     win: &Window,
@@ -782,63 +983,68 @@ fn tile_templates(
     worker: &Worker,
     scratch: &mut select::Scratch,
     opts: &BuildOptions,
-    rejects: &Mutex<HashMap<Reject, usize>>,
-) -> (Vec<Template>, usize) {
+    out: &mut Vec<Template>,
+) -> (CellStats, HashMap<Reject, usize>) {
     let img = LumWindow { width: win.width, height: win.height, lum: &win.lum, valid: &win.valid };
     let core = Core { x0: margin, x1: margin + core_size.0, y0: margin, y1: margin + core_size.1 };
-    let cands = select::select_with(&img, &plan.select, core, scratch);
     let scale = 2f64.powi(plan.pyramid_level as i32);
     let geo = WindowGeo { to_crs: g.info.to_crs, scale, to_wgs: &worker.to_wgs };
     let ep = ExtractParams {
         level: plan.level,
         gsd_m: plan.gsd_m,
-        size_px: opts.template_size,
+        size_px: plan.size_px,
         height_grid_n: opts.height_grid_n,
-        max_plane_residual_m: opts.max_relief_gsd * plan.gsd_m,
+        max_plane_residual_m: opts.max_relief_gsd.map(|r| r * plan.gsd_m),
+        max_view_deg: opts.max_view_deg(),
+        max_hidden_share: opts.max_hidden_share,
         source: g.index,
     };
-    let mut out = Vec::new();
-    let mut local: HashMap<Reject, usize> = HashMap::new();
-    // The DEM under the whole window, read once for all its templates.
-    let (w, h) = (win.width as f64 - 1.0, win.height as f64 - 1.0);
-    let outline: Vec<(f64, f64)> = (0..=8)
-        .flat_map(|i| {
-            [
-                (w * i as f64 / 8.0, 0.0),
-                (w * i as f64 / 8.0, h),
-                (0.0, h * i as f64 / 8.0),
-                (w, h * i as f64 / 8.0),
-            ]
-        })
-        .collect();
-    let bbox = if cands.is_empty() { None } else { geo.lonlat(win, &outline).and_then(GeoBox::around) };
-    let patch = bbox.map(|b| {
-        // A margin for the tangent plane's reach past the window's outline.
-        let (mx, my) = (0.05 * (b.max_lon_deg - b.min_lon_deg), 0.05 * (b.max_lat_deg - b.min_lat_deg));
-        worker.dem.patch(&GeoBox::new(
-            b.min_lon_deg - mx,
-            b.min_lat_deg - my,
-            b.max_lon_deg + mx,
-            b.max_lat_deg + my,
-        ))
-    });
-    for c in &cands {
-        let got = match &patch {
+    let mut rejected: HashMap<Reject, usize> = HashMap::new();
+    // The DEM under the whole window, read once for all its templates (on the
+    // first candidate: most tiles of water or nodata have none).
+    let mut patch: Option<Option<terrain::DemPatch>> = None;
+    let mut accept = |c: &select::Candidate| -> bool {
+        let p = patch.get_or_insert_with(|| {
+            let (w, h) = (win.width as f64 - 1.0, win.height as f64 - 1.0);
+            let outline: Vec<(f64, f64)> = (0..=8)
+                .flat_map(|i| {
+                    [
+                        (w * i as f64 / 8.0, 0.0),
+                        (w * i as f64 / 8.0, h),
+                        (0.0, h * i as f64 / 8.0),
+                        (w, h * i as f64 / 8.0),
+                    ]
+                })
+                .collect();
+            geo.lonlat(win, &outline).and_then(GeoBox::around).map(|b| {
+                // A margin for the tangent plane's reach past the window's outline.
+                let (mx, my) =
+                    (0.05 * (b.max_lon_deg - b.min_lon_deg), 0.05 * (b.max_lat_deg - b.min_lat_deg));
+                worker.dem.patch(&GeoBox::new(
+                    b.min_lon_deg - mx,
+                    b.min_lat_deg - my,
+                    b.max_lon_deg + mx,
+                    b.max_lat_deg + my,
+                ))
+            })
+        });
+        let got = match p {
             Some(p) => extract::extract(win, &geo, p, c, &ep),
             None => extract::extract(win, &geo, &worker.dem, c, &ep),
         };
         match got {
-            Ok(t) => out.push(t),
-            Err(r) => *local.entry(r).or_default() += 1,
+            Ok(t) => {
+                out.push(t);
+                true
+            }
+            Err(r) => {
+                *rejected.entry(r).or_default() += 1;
+                false
+            }
         }
-    }
-    if !local.is_empty() {
-        let mut all = rejects.lock().unwrap_or_else(|e| e.into_inner());
-        for (k, v) in local {
-            *all.entry(k).or_default() += v;
-        }
-    }
-    (out, cands.len())
+    };
+    let cells = select::select_with(&img, &plan.select, core, scratch, &mut accept);
+    (cells, rejected)
 }
 
 /// Where mosaics in different CRSs overlap, keeps the most distinctive of
@@ -848,7 +1054,7 @@ fn dedupe(mut all: Vec<Template>, opts: &BuildOptions) -> Vec<Template> {
     let mut kept: Vec<Template> = Vec::new();
     let mut grid: HashMap<(u8, i64, i64), Vec<usize>> = HashMap::new();
     for t in all {
-        let min_d = 0.5 * opts.spacing_px as f64 * t.gsd_m;
+        let min_d = 0.5 * opts.spacing(t.width_px) as f64 * t.gsd_m;
         let (m_lat, m_lon) = trn_geodesy::metres_per_degree(t.center.lat_deg);
         let cell = |v: f64, m: f64| (v * m / min_d).floor() as i64;
         let (cy, cx) = (cell(t.center.lat_deg, m_lat), cell(t.center.lon_deg, m_lon));
@@ -877,7 +1083,7 @@ fn metadata(
     groups: &[OrthoGroup],
     dems: &[DemSpec],
     base_gsd: f64,
-    levels: u8,
+    specs: &[LevelSpec],
 ) -> Vec<(String, serde_json::Value)> {
     use serde_json::json;
     let sources: Vec<_> = groups
@@ -907,8 +1113,10 @@ fn metadata(
             })
         })
         .collect();
-    let level_list: Vec<_> =
-        (0..levels).map(|k| json!({"level": k, "gsd_m": base_gsd * 2f64.powi(k as i32)})).collect();
+    let level_list: Vec<_> = specs
+        .iter()
+        .map(|s| json!({"level": s.level, "gsd_m": s.gsd_m, "template_px": s.size_px, "footprint_m": s.footprint_m()}))
+        .collect();
     let created =
         std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs()).unwrap_or(0);
     vec![
@@ -917,6 +1125,8 @@ fn metadata(
         ("height_reference".into(), json!("WGS84 ellipsoid")),
         ("parameters".into(), serde_json::to_value(opts).unwrap_or_default()),
         ("base_gsd_m".into(), json!(base_gsd)),
+        ("sized_for_gsd_m".into(), json!(opts.gsd_range())),
+        ("max_view_deg".into(), json!(opts.max_view_deg())),
         ("levels".into(), json!(level_list)),
         ("created_unix".into(), json!(created)),
         ("trn_version".into(), json!(env!("CARGO_PKG_VERSION"))),

@@ -160,6 +160,7 @@ pub struct Scratch {
     valid_half: Vec<u8>,
     coarse_sums: WindowSums,
     cells: Vec<Vec<(f32, f32, usize, usize)>>,
+    cell_usable: Vec<bool>,
 }
 
 fn measures_into(img: &LumWindow, p: &SelectParams, sc: &mut Scratch) {
@@ -533,18 +534,61 @@ pub struct Core {
     pub y1: usize,
 }
 
-/// Selects up to `per_cell` landmarks in each cell of the core.
-pub fn select(img: &LumWindow, p: &SelectParams, core: Core) -> Vec<Candidate> {
-    select_with(img, p, core, &mut Scratch::default())
+/// What became of the cells of a core.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct CellStats {
+    /// Cells with at least one usable window (valid, not saturated).
+    pub covered: usize,
+    /// Covered cells where no window has the texture.
+    pub no_texture: usize,
+    /// Cells whose textured candidates all failed the uniqueness test.
+    pub not_unique: usize,
+    /// Cells whose unique candidates were all refused by `accept` (the
+    /// extraction: relief, DEM, nodata under the resampled template).
+    pub refused: usize,
+    /// Landmarks taken.
+    pub taken: usize,
 }
 
-/// [`select`] with reused buffers.
-pub fn select_with(img: &LumWindow, p: &SelectParams, core: Core, sc: &mut Scratch) -> Vec<Candidate> {
+impl std::ops::AddAssign for CellStats {
+    fn add_assign(&mut self, o: Self) {
+        self.covered += o.covered;
+        self.no_texture += o.no_texture;
+        self.not_unique += o.not_unique;
+        self.refused += o.refused;
+        self.taken += o.taken;
+    }
+}
+
+/// Candidates tested for uniqueness per landmark a cell may keep: a cell that loses
+/// its best candidate (not unique, or refused at extraction) takes the next.
+pub const TRIES_PER_LANDMARK: usize = 6;
+
+/// Selects up to `per_cell` landmarks in each cell of the core.
+pub fn select(img: &LumWindow, p: &SelectParams, core: Core) -> Vec<Candidate> {
+    let mut out = Vec::new();
+    select_with(img, p, core, &mut Scratch::default(), &mut |c| {
+        out.push(*c);
+        true
+    });
+    out
+}
+
+/// [`select`] with reused buffers; each candidate that passes the
+/// uniqueness test is offered to `accept`, and counts against the cell's
+/// quota only if `accept` takes it (returns `true`).
+pub fn select_with(
+    img: &LumWindow,
+    p: &SelectParams,
+    core: Core,
+    sc: &mut Scratch,
+    accept: &mut dyn FnMut(&Candidate) -> bool,
+) -> CellStats {
     measures_into(img, p, sc);
     let (hw, hh) = half_resolution_into(img, &mut sc.half);
     // Entries already there are ones too.
     sc.valid_half.resize(hw * hh, 1);
-    let Scratch { m, half, valid_half, coarse_sums, cells, .. } = sc;
+    let Scratch { m, half, valid_half, coarse_sums, cells, cell_usable, .. } = sc;
     let coarse_img = LumWindow { width: hw, height: hh, lum: half, valid: &valid_half[..hw * hh] };
     coarse_sums.compute(&coarse_img);
     let coarse_p = SelectParams {
@@ -558,13 +602,12 @@ pub fn select_with(img: &LumWindow, p: &SelectParams, core: Core, sc: &mut Scrat
     let cells_y = (core.y1 - core.y0).div_ceil(p.cell_h);
     cells.iter_mut().for_each(Vec::clear);
     cells.resize_with(cells_x * cells_y, Vec::new);
+    cell_usable.clear();
+    cell_usable.resize(cells_x * cells_y, false);
     for by in 0..m.grid_h {
         for bx in 0..m.grid_w {
             let i = by * m.grid_w + bx;
-            if !(m.usable[i]
-                && m.shi_tomasi[i] >= p.min_shi_tomasi
-                && m.contrast_std[i] >= p.min_contrast_std)
-            {
+            if !m.usable[i] {
                 continue;
             }
             let Some((x, y)) = m.centre(bx, by) else { continue };
@@ -572,12 +615,20 @@ pub fn select_with(img: &LumWindow, p: &SelectParams, core: Core, sc: &mut Scrat
                 continue;
             }
             let c = ((y - core.y0) / p.cell_h) * cells_x + (x - core.x0) / p.cell_w;
-            cells[c].push((m.shi_tomasi[i], m.contrast_std[i], x, y));
+            cell_usable[c] = true;
+            if m.shi_tomasi[i] >= p.min_shi_tomasi && m.contrast_std[i] >= p.min_contrast_std {
+                cells[c].push((m.shi_tomasi[i], m.contrast_std[i], x, y));
+            }
         }
     }
-    let mut out = Vec::new();
+    let mut stats = CellStats::default();
     let min_sep = (p.win_w.min(p.win_h) / 2).max(1);
-    for cell in &mut cells[..cells_x * cells_y] {
+    for (cell, &usable) in cells[..cells_x * cells_y].iter_mut().zip(cell_usable.iter()) {
+        stats.covered += usize::from(usable);
+        if cell.is_empty() {
+            stats.no_texture += usize::from(usable);
+            continue;
+        }
         // Only the strongest few are ever tried: a partial sort is enough.
         let keep = 32 * p.per_cell;
         if cell.len() > keep {
@@ -586,9 +637,9 @@ pub fn select_with(img: &LumWindow, p: &SelectParams, core: Core, sc: &mut Scrat
         }
         cell.sort_unstable_by(|a, b| b.0.total_cmp(&a.0));
         let mut taken: Vec<(usize, usize)> = Vec::new();
-        let mut tried = 0;
+        let (mut tried, mut unique) = (0, 0);
         for &(st, contrast_std, x, y) in cell.iter() {
-            if taken.len() >= p.per_cell || tried >= 3 * p.per_cell {
+            if taken.len() >= p.per_cell || tried >= TRIES_PER_LANDMARK * p.per_cell {
                 break;
             }
             if taken.iter().any(|&(tx, ty)| tx.abs_diff(x).max(ty.abs_diff(y)) < min_sep) {
@@ -601,11 +652,21 @@ pub fn select_with(img: &LumWindow, p: &SelectParams, core: Core, sc: &mut Scrat
             if sp > p.max_second_peak {
                 continue;
             }
-            taken.push((x, y));
-            out.push(Candidate { x, y, shi_tomasi: st, contrast_std, second_peak_ncc: sp });
+            unique += 1;
+            if accept(&Candidate { x, y, shi_tomasi: st, contrast_std, second_peak_ncc: sp }) {
+                taken.push((x, y));
+            }
+        }
+        stats.taken += taken.len();
+        if taken.is_empty() {
+            if unique == 0 {
+                stats.not_unique += 1;
+            } else {
+                stats.refused += 1;
+            }
         }
     }
-    out
+    stats
 }
 
 #[cfg(test)]

@@ -127,6 +127,55 @@ impl HeightGrid {
         (h(r0, c0) * (1.0 - fc) + h(r0, c1) * fc) * (1.0 - fr)
             + (h(r1, c0) * (1.0 - fc) + h(r1, c1) * fc) * fr
     }
+
+    /// Share of the grid's nodes the template's own terrain hides from a
+    /// viewer `view_deg` from the vertical, for each of 8 azimuths (north,
+    /// then clockwise in 45-degree steps; the viewer lies that way): a node
+    /// is hidden when the terrain toward the viewer, within the grid, rises
+    /// above its line of sight.
+    pub fn hidden_shares(&self, view_deg: f64) -> [f64; 8] {
+        let n = self.n as usize;
+        let mut out = [0.0; 8];
+        if n < 2 || self.heights_m.len() != n * n || view_deg <= 0.0 {
+            return out;
+        }
+        let rise = 1.0 / view_deg.to_radians().tan();
+        let half = (n as f64 - 1.0) / 2.0 * self.spacing_m;
+        let step = self.spacing_m / 2.0;
+        for (a, share) in out.iter_mut().enumerate() {
+            let az = a as f64 * std::f64::consts::FRAC_PI_4;
+            let (de, dn) = (az.sin(), az.cos());
+            let mut hidden = 0;
+            for r in 0..n {
+                for c in 0..n {
+                    let (e0, n0) = (-half + c as f64 * self.spacing_m, half - r as f64 * self.spacing_m);
+                    let h0 = self.heights_m[r * n + c] as f64;
+                    let mut s = step;
+                    loop {
+                        let (e, nn) = (e0 + s * de, n0 + s * dn);
+                        if e.abs() > half + 1e-9 || nn.abs() > half + 1e-9 {
+                            break;
+                        }
+                        if self.height_at(e, nn) > h0 + s * rise + 1e-3 {
+                            hidden += 1;
+                            break;
+                        }
+                        s += step;
+                    }
+                }
+            }
+            *share = hidden as f64 / (n * n) as f64;
+        }
+        out
+    }
+
+    /// The least of [`HeightGrid::hidden_shares`]: what the template's own
+    /// relief hides at `view_deg` from the vertical even from its best side.
+    /// A mission whose views are that oblique from every side cannot predict
+    /// that much of it.
+    pub fn hidden_share_best_side(&self, view_deg: f64) -> f64 {
+        self.hidden_shares(view_deg).into_iter().fold(1.0, f64::min)
+    }
 }
 
 /// How good a landmark the template is: the builder's selection scores.
@@ -207,6 +256,45 @@ impl Template {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn grid(n: u32, spacing_m: f64, h: impl Fn(f64, f64) -> f64) -> HeightGrid {
+        let half = (n as f64 - 1.0) / 2.0 * spacing_m;
+        let heights_m = (0..n * n)
+            .map(|i| {
+                let (r, c) = ((i / n) as f64, (i % n) as f64);
+                h(-half + c * spacing_m, half - r * spacing_m) as f32
+            })
+            .collect();
+        HeightGrid { n, spacing_m, heights_m }
+    }
+
+    #[test]
+    fn flat_and_gentle_terrain_hides_nothing_a_wall_hides_what_is_behind_it() {
+        assert_eq!(grid(9, 10.0, |_, _| 0.0).hidden_shares(80.0), [0.0; 8]);
+        // A 20-degree slope rising east is seen from anywhere within 70 degrees of the vertical.
+        let slope = grid(9, 10.0, |e, _| e * 20f64.to_radians().tan());
+        assert_eq!(slope.hidden_shares(65.0), [0.0; 8]);
+        // It faces west: seen from 75 degrees off the vertical from the east (its
+        // back), it hides itself; from the west nothing hides.
+        let s = slope.hidden_shares(75.0);
+        assert!(s[2] > 0.5 && s[6] == 0.0, "{s:?}");
+        assert_eq!(slope.hidden_share_best_side(75.0), 0.0);
+        // A ridge 30 m high at e = 0, 10 m wide: from 45 degrees, the nodes
+        // within 30 m behind it on the far side are hidden.
+        let ridge = grid(9, 10.0, |e, _| if e.abs() < 1.0 { 30.0 } else { 0.0 });
+        let s = ridge.hidden_shares(45.0);
+        // Brute force: from the east (az 90), node (e, n) with e < 0 is hidden when
+        // 30 > (0 - e) * cot(45) -> e > -30: columns e = -10, -20 (e = -30 touches).
+        assert!((s[2] - 2.0 * 9.0 / 81.0).abs() < 1e-9, "{s:?}");
+        assert!((s[6] - 2.0 * 9.0 / 81.0).abs() < 1e-9, "{s:?}");
+        // Along the ridge (north, south) nothing is hidden: its best side hides nothing.
+        assert_eq!((s[0], s[4]), (0.0, 0.0));
+        assert_eq!(ridge.hidden_share_best_side(45.0), 0.0);
+        // A pit 40 m deep and 20 m across hides its floor from every side at 45 degrees.
+        let pit = grid(9, 10.0, |e, n| if e.abs() < 11.0 && n.abs() < 11.0 { -40.0 } else { 0.0 });
+        assert!(pit.hidden_share_best_side(45.0) > 0.0);
+        assert_eq!(pit.hidden_share_best_side(5.0), 0.0);
+    }
 
     #[test]
     fn geobox_antimeridian_split_and_intersect() {

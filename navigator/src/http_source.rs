@@ -39,6 +39,7 @@ struct InfoJson {
 struct LevelJson {
     level: u8,
     gsd_m: f64,
+    template_px: u32,
     count: u64,
     extent: GeoBox,
 }
@@ -72,7 +73,13 @@ impl HttpSource {
         me.levels = info
             .levels
             .into_iter()
-            .map(|l| LevelInfo { level: l.level, gsd_m: l.gsd_m, count: l.count, extent: l.extent })
+            .map(|l| LevelInfo {
+                level: l.level,
+                gsd_m: l.gsd_m,
+                template_px: l.template_px,
+                count: l.count,
+                extent: l.extent,
+            })
             .collect();
         Ok(me)
     }

@@ -18,6 +18,7 @@ use crate::image::{GreyImage, Pyramid, UndistortLut};
 use crate::predict::{predict, Predicted};
 use crate::propagate::propagate_with_bias;
 use crate::source::LandmarkSource;
+use crate::view::DbLevel;
 
 /// Navigator settings (the `trn navigate` options).
 #[derive(Clone, Debug)]
@@ -98,10 +99,8 @@ pub struct Navigator<'a> {
     imu: &'a [ImuSample],
     params: NavParams,
     lut: UndistortLut,
-    /// (level, GSD) of the database.
-    levels: Vec<(u8, f64)>,
-    /// Template side (px) in the database.
-    template_px: f64,
+    /// The database's levels.
+    levels: Vec<DbLevel>,
     /// Per level: the last (enlarged) query box and its templates; the
     /// footprint moves little between frames.
     cache: std::cell::RefCell<std::collections::HashMap<u8, (trn_landmark::GeoBox, Vec<Template>)>>,
@@ -114,6 +113,11 @@ pub struct Navigator<'a> {
     /// view inherits the tilt the frames before it saw.
     filter: AttitudeFilter,
     last_fix: Option<(f64, CameraPose)>,
+    /// Accepted fix positions of the last [`VELOCITY_WINDOW_S`] (time, ECEF).
+    recent_fixes: std::collections::VecDeque<(f64, Vector3<f64>)>,
+    /// Velocity (ECEF, m/s) and its 1-sigma error; `None` before the fixes
+    /// span [`VELOCITY_MIN_SPAN_S`].
+    velocity_sigma: Option<f64>,
     velocity: Vector3<f64>,
     terrain_h_m: f64,
 }
@@ -125,9 +129,20 @@ const MAX_PATCH_PX: usize = 63;
 const MIN_COARSE_LANDMARKS: usize = 20;
 /// Smallest template size at a coarse search level (level pixels).
 const MIN_PATCH_PX: f64 = 12.0;
-/// Error of the velocity from two fixes (m/s, 1 sigma): their position
-/// errors over the gap, and acceleration since.
+/// Smallest error of the velocity from fixes (m/s, 1 sigma): acceleration
+/// since the window's middle.
 const VELOCITY_KNOWN_SIGMA_M_S: f64 = 5.0;
+/// The velocity is the least-squares slope of the fix positions over this
+/// window (s), once they span at least `VELOCITY_MIN_SPAN_S`: two fixes
+/// 0.5 s apart whose errors differ by 50 m (a narrow view's tilt/shift
+/// trade) would give 100 m/s of error.
+const VELOCITY_WINDOW_S: f64 = 8.0;
+const VELOCITY_MIN_SPAN_S: f64 = 2.0;
+/// Attitude error (deg, 1 sigma per axis) the gyro prior always allows on
+/// top of the filter's: what the camera's calibration and clock errors move
+/// an image's attitude between frames (a 0.3% focal error or a few ms of
+/// clock offset during a spin), which the filter does not model.
+const ATTITUDE_PRIOR_FLOOR_DEG: f64 = 0.05;
 /// A refined attitude farther than this (squared Mahalanobis distance, 3
 /// degrees of freedom, 99.9%) from the gyro prior means the two disagree:
 /// the frame is refined again with the prior loosened.
@@ -141,12 +156,12 @@ impl<'a> Navigator<'a> {
         init: &TimedPose,
         params: NavParams,
     ) -> Result<Self, crate::source::SourceError> {
-        let levels: Vec<(u8, f64)> = source.levels()?.iter().map(|l| (l.level, l.gsd_m)).collect();
+        let levels = DbLevel::of(&source.levels()?);
         if levels.is_empty() {
             return Err(crate::source::SourceError("the landmark database has no templates".into()));
         }
         let near = crate::view::terrain_near(source, &levels, &init.position)?;
-        let (terrain_h_m, template_px) = (near.height_m, near.template_px.unwrap_or(32.0));
+        let terrain_h_m = near.height_m;
         Ok(Self {
             source,
             camera: camera.model,
@@ -154,7 +169,6 @@ impl<'a> Navigator<'a> {
             imu,
             lut: UndistortLut::new(&camera.model, PYRAMID_LEVELS),
             levels,
-            template_px,
             cache: Default::default(),
             t: init.t,
             pose: CameraPose::new(init.position.to_ecef(), init.q_ecef_cam),
@@ -169,6 +183,8 @@ impl<'a> Navigator<'a> {
             ),
             params,
             last_fix: None,
+            recent_fixes: Default::default(),
+            velocity_sigma: None,
             velocity: Vector3::zeros(),
             terrain_h_m,
         })
@@ -221,10 +237,13 @@ impl<'a> Navigator<'a> {
                 let accepted =
                     sol.inliers >= self.params.min_inliers && jump <= self.params.max_height_jump_m;
                 if accepted {
-                    if let Some((tf, pf)) = self.last_fix {
-                        if t - tf > 1e-6 {
-                            self.velocity = (sol.pose.position.0 - pf.position.0) / (t - tf);
-                        }
+                    self.recent_fixes.push_back((t, sol.pose.position.0));
+                    while self.recent_fixes.front().is_some_and(|f| t - f.0 > VELOCITY_WINDOW_S) {
+                        self.recent_fixes.pop_front();
+                    }
+                    if let Some((v, sigma)) = velocity_fit(&self.recent_fixes) {
+                        self.velocity = v;
+                        self.velocity_sigma = Some(sigma);
                     }
                     self.last_fix = Some((t, sol.pose));
                     self.pose = sol.pose;
@@ -333,8 +352,8 @@ impl<'a> Navigator<'a> {
         Ok(ts.iter().filter(|t| t.footprint.intersects(bbox)).cloned().collect())
     }
 
-    /// Template level whose GSD is closest (in ratio) to `gsd_m`.
-    fn level_for(&self, gsd_m: f64) -> (u8, f64) {
+    /// Template level that fits the local resolution `gsd_m` (m per pixel).
+    fn level_for(&self, gsd_m: f64) -> DbLevel {
         crate::view::level_for(&self.levels, gsd_m).expect("levels")
     }
 
@@ -346,7 +365,8 @@ impl<'a> Navigator<'a> {
         propagated: &Matrix6<f64>,
         image: GreyImage,
     ) -> Result<Solution, usize> {
-        let att_cov: Matrix3<f64> = propagated.fixed_view::<3, 3>(0, 0).into_owned();
+        let att_cov: Matrix3<f64> = propagated.fixed_view::<3, 3>(0, 0).into_owned()
+            + Matrix3::identity() * ATTITUDE_PRIOR_FLOOR_DEG.to_radians().powi(2);
         let sigma_rad = att_cov.trace().sqrt();
         let prior = self
             .params
@@ -369,11 +389,7 @@ impl<'a> Navigator<'a> {
         })?;
         // The guess' position: the last fix's, plus the velocity's error over
         // the gap (unknown before two fixes).
-        let v_sigma = if self.last_fix.is_some() && self.velocity != Vector3::zeros() {
-            VELOCITY_KNOWN_SIGMA_M_S
-        } else {
-            self.params.velocity_sigma_m_s
-        };
+        let v_sigma = self.velocity_sigma.unwrap_or(self.params.velocity_sigma_m_s);
         let sigma_m = self.sigma_m + v_sigma * (t - self.t).max(0.0);
         let sigma_px = f * (sigma_rad + sigma_m / fp.center_range_m);
         let radius_full = (2.5 * sigma_px + 3.0).min(f * 0.25);
@@ -390,12 +406,24 @@ impl<'a> Navigator<'a> {
         let mut pose = *guess;
         let mut radius = ((radius_full / (1u32 << k) as f64).ceil() as usize).max(4);
         let mut best: Option<Solution> = None;
-        // Coarse to fine: each level starts from the pose of the one above.
+        // Coarse to fine: each level starts from the pose of the one above
+        // when that one is trustworthy (enough inliers, attitude within the
+        // gyro prior's gate); a weak coarse solution is not followed: the
+        // next level searches the same ground radius around the guess.
         for level in (0..=k).rev() {
-            let sol = self.stage(&pyr, &pose, &fp, level, radius, prior.as_ref())?;
-            pose = sol.pose;
-            best = Some(sol);
-            radius = 5;
+            match self.stage(&pyr, &pose, &fp, level, radius, prior.as_ref()) {
+                Ok(sol) if level == 0 || (sol.inliers >= self.params.min_inliers && !sol.prior_loosened) => {
+                    pose = sol.pose;
+                    best = Some(sol);
+                    radius = 5;
+                }
+                Ok(sol) => {
+                    debug!("level {level}: weak solution ({} inliers) not followed", sol.inliers);
+                    radius *= 2;
+                }
+                Err(n) if level == 0 => return Err(n),
+                Err(_) => radius *= 2,
+            }
         }
         let mut sol = best.ok_or(0usize)?;
         // The refined terrain height helps the next footprint.
@@ -425,11 +453,11 @@ impl<'a> Navigator<'a> {
         // Oblique views span many ground resolutions: query the levels around
         // the centre's and keep each template only where its level fits the
         // local resolution (`view::level_fits`, shared with the server).
-        let (db_level, _) = self.level_for(fp.center_gsd_m * scale);
+        let db_level = self.level_for(fp.center_gsd_m * scale).level;
         let span = crate::view::LEVEL_SPAN;
         let (lo, hi) = (db_level.saturating_sub(span), db_level.saturating_add(span));
         let mut templates = Vec::new();
-        for l in self.levels.iter().map(|l| l.0).filter(|&l| l >= lo && l <= hi) {
+        for l in self.levels.iter().map(|l| l.level).filter(|&l| l >= lo && l <= hi) {
             templates.extend(self.query(&fp.bbox, l).map_err(|e| {
                 tracing::warn!("landmark query failed: {e}");
                 0usize
@@ -542,12 +570,11 @@ impl<'a> Navigator<'a> {
     /// image at least `MIN_PATCH_PX` level pixels wide.
     fn usable_landmarks(&self, fp: &crate::footprint::Footprint, pose: &CameraPose, k: usize) -> usize {
         let scale = (1u32 << k) as f64;
-        let (db_level, gsd) = self.level_for(fp.center_gsd_m * scale);
-        let size_px = self.template_px * gsd / (fp.center_gsd_m * scale);
-        if size_px < MIN_PATCH_PX {
+        let db_level = self.level_for(fp.center_gsd_m * scale);
+        if db_level.span_px(fp.center_gsd_m * scale) < MIN_PATCH_PX {
             return 0;
         }
-        let Ok(ts) = self.query(&fp.bbox, db_level) else { return 0 };
+        let Ok(ts) = self.query(&fp.bbox, db_level.level) else { return 0 };
         let (w, h) = (self.camera.width as f64, self.camera.height as f64);
         ts.iter()
             .filter_map(|t| pose.project(&self.camera, &t.center_ecef()))
@@ -620,5 +647,58 @@ impl Solution {
 
     fn position_covariance(&self) -> Matrix3<f64> {
         self.covariance.fixed_view::<3, 3>(3, 3).into_owned()
+    }
+}
+
+/// Least-squares velocity (m/s) of timed positions, with its 1-sigma error
+/// (from the fit's residuals, at least [`VELOCITY_KNOWN_SIGMA_M_S`]); `None`
+/// when they span less than [`VELOCITY_MIN_SPAN_S`] or number fewer than 3.
+fn velocity_fit(fixes: &std::collections::VecDeque<(f64, Vector3<f64>)>) -> Option<(Vector3<f64>, f64)> {
+    let n = fixes.len();
+    let (t0, t1) = (fixes.front()?.0, fixes.back()?.0);
+    if n < 3 || t1 - t0 < VELOCITY_MIN_SPAN_S {
+        return None;
+    }
+    let tm = fixes.iter().map(|f| f.0).sum::<f64>() / n as f64;
+    let pm = fixes.iter().map(|f| f.1).sum::<Vector3<f64>>() / n as f64;
+    let stt = fixes.iter().map(|f| (f.0 - tm).powi(2)).sum::<f64>();
+    let v = fixes.iter().map(|f| (f.1 - pm) * (f.0 - tm)).sum::<Vector3<f64>>() / stt;
+    // Residual scatter per axis, and the slope's error sigma / sqrt(Stt).
+    let ss: f64 = fixes.iter().map(|f| (f.1 - pm - v * (f.0 - tm)).norm_squared()).sum::<f64>();
+    let sigma_pos = (ss / (3.0 * (n as f64 - 2.0).max(1.0))).sqrt();
+    Some((v, (sigma_pos / stt.sqrt()).max(VELOCITY_KNOWN_SIGMA_M_S)))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn velocity_is_the_least_squares_slope_of_the_fixes() {
+        let v = Vector3::new(8.0, 3.0, -6.0);
+        let p0 = Vector3::new(-2.4e6, -4.6e6, 3.8e6);
+        // Fixes every 0.5 s with +-40 m of alternating error: pairwise differences
+        // would be off by 160 m/s.
+        let fixes: std::collections::VecDeque<(f64, Vector3<f64>)> = (0..13)
+            .map(|i| {
+                let t = i as f64 * 0.5;
+                let e = if i % 2 == 0 { 40.0 } else { -40.0 };
+                (t, p0 + v * t + Vector3::new(e, -e, e))
+            })
+            .collect();
+        let (got, sigma) = velocity_fit(&fixes).unwrap();
+        assert!((got - v).norm() < 10.0, "{got:?}");
+        // The reported error covers the actual one, and exceeds the floor here.
+        assert!(sigma >= (got - v).norm() / 3.0 && sigma > VELOCITY_KNOWN_SIGMA_M_S, "{sigma}");
+        // Exact positions: the exact velocity, the floor as its error.
+        let exact: std::collections::VecDeque<_> = fixes.iter().map(|&(t, _)| (t, p0 + v * t)).collect();
+        let (got, sigma) = velocity_fit(&exact).unwrap();
+        assert!((got - v).norm() < 1e-6);
+        assert_eq!(sigma, VELOCITY_KNOWN_SIGMA_M_S);
+        // Too short a span, or too few fixes: no velocity.
+        let short: std::collections::VecDeque<_> = exact.iter().take(4).copied().collect();
+        assert!(velocity_fit(&short).is_none());
+        let two: std::collections::VecDeque<_> = [exact[0], exact[12]].into_iter().collect();
+        assert!(velocity_fit(&two).is_none());
     }
 }

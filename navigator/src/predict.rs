@@ -1,7 +1,11 @@
 //! Landmarks predicted into the camera image: each template is warped into
-//! image pixels through the homography its terrain plane and the pose guess
-//! induce (distortion included through a per-pixel undistortion table), so
-//! it can be correlated with the image as the camera would see it.
+//! image pixels as the pose guess would see it (distortion included through
+//! a per-pixel undistortion table), so it can be correlated with the image.
+//! Over flat terrain the warp is the homography the template's terrain plane
+//! induces; where the terrain departs from the plane by more than
+//! [`RELIEF_SHARE_OF_GSD`] of a template pixel, each image pixel's ray is
+//! intersected with the template's height grid instead (first crossing, so
+//! relief hides what lies behind it).
 
 use nalgebra::{Matrix3, Vector3};
 use trn_camera::{CameraModel, CameraPose, Pixel};
@@ -10,6 +14,71 @@ use trn_landmark::Template;
 use trn_vision::ncc;
 
 use crate::image::{from_level, to_level, UndistortLut};
+
+/// RMS departure of the terrain from the template's plane (in template
+/// pixels) above which the warp follows the height grid, not the plane.
+pub const RELIEF_SHARE_OF_GSD: f64 = 0.25;
+
+/// Fewest template pixels a prediction must put in the image.
+pub const MIN_VALID_PX: f64 = 40.0;
+
+/// A template's terrain for ray intersection, in its tangent frame.
+struct Relief<'a> {
+    grid: &'a trn_landmark::HeightGrid,
+    /// Camera centre (ENU, template frame) and rotation camera -> ENU.
+    origin: Vector3<f64>,
+    r_enu_cam: Matrix3<f64>,
+    h_lo: f64,
+    h_hi: f64,
+    /// Largest horizontal step of the march (m).
+    step_m: f64,
+}
+
+impl Relief<'_> {
+    /// Tangent-plane (east, north) where the ray through normalized image
+    /// point (x, y) first meets the terrain; `None` if it points up or the
+    /// march does not close.
+    fn hit(&self, x: f64, y: f64) -> Option<(f64, f64)> {
+        let d = self.r_enu_cam * Vector3::new(x, y, 1.0);
+        if d.z >= -1e-9 {
+            return None;
+        }
+        let o = &self.origin;
+        let f = |s: f64| o.z + s * d.z - self.grid.height_at(o.x + s * d.x, o.y + s * d.y);
+        // The ray is within the terrain's height band for s in [s0, s1].
+        let (s0, s1) = ((self.h_hi - o.z) / d.z, (self.h_lo - o.z) / d.z);
+        let horiz = d.x.hypot(d.y);
+        let n = if horiz * (s1 - s0) <= self.step_m {
+            1
+        } else {
+            ((horiz * (s1 - s0) / self.step_m).ceil() as usize).min(256)
+        };
+        let ds = (s1 - s0) / n as f64;
+        let (mut a, mut fa) = (s0, f(s0));
+        for i in 1..=n {
+            let b = s0 + ds * i as f64;
+            let fb = f(b);
+            if fb <= 0.0 {
+                // Bracketed: false position, a few steps (bilinear terrain).
+                let (mut lo, mut flo, mut hi, mut fhi) = (a, fa, b, fb);
+                for _ in 0..6 {
+                    let m =
+                        if flo - fhi > 1e-12 { lo + (hi - lo) * flo / (flo - fhi) } else { 0.5 * (lo + hi) };
+                    let fm = f(m);
+                    if fm > 0.0 {
+                        (lo, flo) = (m, fm);
+                    } else {
+                        (hi, fhi) = (m, fm);
+                    }
+                }
+                let s = if flo - fhi > 1e-12 { lo + (hi - lo) * flo / (flo - fhi) } else { hi };
+                return Some((o.x + s * d.x, o.y + s * d.y));
+            }
+            (a, fa) = (b, fb);
+        }
+        None
+    }
+}
 
 /// A template warped into pyramid level `level` of the image.
 pub struct Predicted {
@@ -75,17 +144,57 @@ pub fn predict(
     let x00 = to_cam(0.0, 0.0);
     let a = Matrix3::from_columns(&[to_cam(1.0, 0.0) - x00, to_cam(0.0, 1.0) - x00, x00]);
     let a_inv = a.try_inverse()?;
-    // Patch size: the template's extent in level pixels.
+    let grid = &t.terrain.height_grid;
+    let relief = (t.terrain.plane_residual_rms_m > RELIEF_SHARE_OF_GSD * t.gsd_m
+        && grid.n >= 2
+        && grid.heights_m.len() == (grid.n * grid.n) as usize)
+        .then(|| {
+            let r_enu_ecef = frame.r_ecef_enu().transpose();
+            let (h_lo, h_hi) = grid
+                .heights_m
+                .iter()
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| (l.min(v as f64), h.max(v as f64)));
+            Relief {
+                grid,
+                origin: frame.to_enu(&pose.position).0,
+                r_enu_cam: r_enu_ecef * pose.q_ecef_cam.to_rotation_matrix().matrix(),
+                h_lo: h_lo - 0.01,
+                h_hi: h_hi + 0.01,
+                step_m: 0.5 * grid.spacing_m.min(t.gsd_m * 2.0),
+            }
+        });
+    // Patch size: the template's extent in level pixels (its outline at the
+    // grid's heights when relief is modelled).
     let (tw, th) = (t.width_px as f64, t.height_px as f64);
-    let corners = [(-0.5, -0.5), (tw - 0.5, -0.5), (tw - 0.5, th - 0.5), (-0.5, th - 0.5)];
+    let mut outline = vec![(-0.5, -0.5), (tw - 0.5, -0.5), (tw - 0.5, th - 0.5), (-0.5, th - 0.5)];
+    if relief.is_some() {
+        outline.extend([(tw / 2.0, -0.5), (tw / 2.0, th - 0.5), (-0.5, th / 2.0), (tw - 0.5, th / 2.0)]);
+    }
+    let to_cam_relief = |c: f64, r: f64| -> Vector3<f64> {
+        let e = (c - (tw - 1.0) / 2.0) * t.gsd_m;
+        let n = ((th - 1.0) / 2.0 - r) * t.gsd_m;
+        pose.to_camera(&frame.to_ecef(Enu::new(e, n, grid.height_at(e, n))))
+    };
     let mut lo = [f64::INFINITY; 2];
     let mut hi = [f64::NEG_INFINITY; 2];
-    for (c, r) in corners {
-        let p = camera.project(&to_cam(c, r))?;
+    let mut ring = Vec::with_capacity(outline.len());
+    for (c, r) in outline {
+        let x = if relief.is_some() { to_cam_relief(c, r) } else { to_cam(c, r) };
+        let p = camera.project(&x)?;
         let p = to_level(p, level);
         lo = [lo[0].min(p.u), lo[1].min(p.v)];
         hi = [hi[0].max(p.u), hi[1].max(p.v)];
+        ring.push(p);
     }
+    // Projected area of the template (shoelace over its four corners), level pixels².
+    let area_px = 0.5
+        * (0..4)
+            .map(|i| {
+                let (a, b) = (ring[i], ring[(i + 1) % 4]);
+                a.u * b.v - b.u * a.v
+            })
+            .sum::<f64>()
+            .abs();
     let side = ((hi[0] - lo[0]).max(hi[1] - lo[1]).ceil() as usize).clamp(9, max_side) | 1;
     let c = to_level(center_px, level);
     let half = (side / 2) as isize;
@@ -105,11 +214,19 @@ pub fn predict(
                 continue;
             }
             let n = lut.at(level, x as usize, y as usize);
-            let m = a_inv * Vector3::new(n[0] as f64, n[1] as f64, 1.0);
-            if m.z <= 0.0 {
-                continue;
-            }
-            let (tc, tr) = (m.x / m.z, m.y / m.z);
+            let (tc, tr) = match &relief {
+                None => {
+                    let m = a_inv * Vector3::new(n[0] as f64, n[1] as f64, 1.0);
+                    if m.z <= 0.0 {
+                        continue;
+                    }
+                    (m.x / m.z, m.y / m.z)
+                }
+                Some(rl) => {
+                    let Some((e, nn)) = rl.hit(n[0] as f64, n[1] as f64) else { continue };
+                    (e / t.gsd_m + (tw - 1.0) / 2.0, (th - 1.0) / 2.0 - nn / t.gsd_m)
+                }
+            };
             if !(tc >= 0.0 && tr >= 0.0 && tc <= tw - 1.0 && tr <= th - 1.0) {
                 continue;
             }
@@ -121,8 +238,11 @@ pub fn predict(
             mask[j * side + i] = true;
         }
     }
+    // Enough of the template must land in the image: a third of its
+    // projected area (a foreshortened template fills little of its square
+    // patch), and at least MIN_VALID_PX pixels.
     let valid = mask.iter().filter(|&&m| m).count();
-    if valid < side * side / 3 {
+    if (valid as f64) < (area_px / 3.0).min((side * side) as f64 / 3.0).max(MIN_VALID_PX) {
         return None;
     }
     Some(Predicted {
@@ -133,4 +253,123 @@ pub fn predict(
         patch_center: Pixel::new((x0 + half) as f64, (y0 + half) as f64),
         level,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use trn_geodesy::Geodetic;
+    use trn_landmark::{GeoBox, HeightGrid, TemplateQuality, TerrainPatch};
+
+    /// A 32-px template at 30 m over a ridge running north-south (height
+    /// `ridge_m` at the centre line), with a smooth texture.
+    fn ridge_template(ridge_m: f64) -> Template {
+        let (n, size, gsd) = (17u32, 32u32, 30.0);
+        let half = (size as f64) / 2.0 * gsd;
+        let spacing = 2.0 * half / (n as f64 - 1.0);
+        let h = |e: f64| ridge_m * (1.0 - (e.abs() / 300.0)).max(0.0);
+        let heights_m: Vec<f32> = (0..n * n).map(|i| h(-half + (i % n) as f64 * spacing) as f32).collect();
+        let en: Vec<(f64, f64)> =
+            (0..n * n).map(|i| (-half + (i % n) as f64 * spacing, half - (i / n) as f64 * spacing)).collect();
+        let up: Vec<f64> = heights_m.iter().map(|&v| v as f64).collect();
+        // The plane a builder would fit (least squares, as trn-builder does).
+        let (mut s, mut su) = (0.0, 0.0);
+        for &u in &up {
+            s += 1.0;
+            su += u;
+        }
+        let mean = su / s;
+        let rms = (up.iter().map(|u| (u - mean).powi(2)).sum::<f64>() / s).sqrt();
+        let _ = en;
+        let pixels = (0..size * size)
+            .map(|i| {
+                let (c, r) = ((i % size) as f64, (i / size) as f64);
+                (128.0 + 60.0 * (c * 0.35).sin() * (r * 0.27).cos() + 40.0 * (c * 0.11 + r * 0.19).sin())
+                    as u8
+            })
+            .collect();
+        Template {
+            id: 1,
+            level: 0,
+            gsd_m: gsd,
+            width_px: size,
+            height_px: size,
+            center: Geodetic::new(37.0, -118.5, 2000.0),
+            footprint: GeoBox::new(0.0, 0.0, 0.0, 0.0),
+            terrain: TerrainPatch {
+                plane_normal_enu: [0.0, 0.0, 1.0],
+                plane_residual_rms_m: rms,
+                height_grid: HeightGrid { n, spacing_m: spacing, heights_m },
+            },
+            quality: TemplateQuality { shi_tomasi: 10.0, contrast_std: 30.0, second_peak_ncc: 0.2 },
+            source: 0,
+            pixels,
+        }
+    }
+
+    /// Mean absolute difference between the patch and the template's own
+    /// pixels projected forward through the true terrain (pixel centres away
+    /// from the template's border, seen and not hidden).
+    fn forward_error(t: &Template, pose: &CameraPose, camera: &CameraModel) -> f64 {
+        let lut = UndistortLut::new(camera, 1);
+        let p = predict(t, pose, camera, &lut, 0, 255, 85.0).expect("predicted");
+        let frame = t.local_frame();
+        let g = &t.terrain.height_grid;
+        let (mut sum, mut n) = (0.0, 0);
+        for r in 4..t.height_px - 4 {
+            for c in 4..t.width_px - 4 {
+                let e = (c as f64 - 15.5) * t.gsd_m;
+                let nn = (15.5 - r as f64) * t.gsd_m;
+                let u = g.height_at(e, nn);
+                // Brute force visibility: the segment to the camera stays above the terrain.
+                let eye = frame.to_enu(&pose.position).0;
+                let hidden = (1..2000).any(|i| {
+                    let s = i as f64 / 2000.0 * 0.2;
+                    let q = Vector3::new(e, nn, u) + (eye - Vector3::new(e, nn, u)) * s;
+                    q.z < g.height_at(q.x, q.y) - 0.01
+                });
+                if hidden {
+                    continue;
+                }
+                let x = pose.to_camera(&frame.to_ecef(Enu::new(e, nn, u)));
+                let q = camera.project(&x).unwrap();
+                let (pu, pv) = (
+                    q.u - p.patch_center.u + (p.patch.width / 2) as f64,
+                    q.v - p.patch_center.v + (p.patch.height / 2) as f64,
+                );
+                let (iu, iv) = (pu.round() as usize, pv.round() as usize);
+                if iu >= p.patch.width || iv >= p.patch.height {
+                    continue;
+                }
+                let k = iv * p.patch.width + iu;
+                if !p.patch.mask.as_ref().unwrap()[k] {
+                    continue;
+                }
+                sum += (p.patch.data[k] as f64 - t.pixels[(r * t.width_px + c) as usize] as f64).abs();
+                n += 1;
+            }
+        }
+        assert!(n > 300, "{n} samples");
+        sum / n as f64
+    }
+
+    #[test]
+    fn relief_is_predicted_through_the_height_grid() {
+        let camera = CameraModel::from_fov(1024, 768, 30.0);
+        let t = ridge_template(250.0);
+        let centre = t.center_ecef();
+        // 6 km east of the ridge and 8 km up: its top leans ~190 m (6 template
+        // pixels) against its foot in the view.
+        let frame = t.local_frame();
+        let eye = frame.to_ecef(Enu::new(6000.0, 0.0, 8000.0));
+        let pose = CameraPose::look_at(eye, centre, t.center.up_ecef());
+        let with_relief = forward_error(&t, &pose, &camera);
+        // The same template with its relief hidden from the predictor: the plane.
+        let mut flat = t.clone();
+        flat.terrain.plane_residual_rms_m = 0.0;
+        let planar = forward_error(&flat, &pose, &camera);
+        eprintln!("forward error: relief-aware {with_relief:.2}, planar {planar:.2} grey levels");
+        assert!(with_relief < 6.0, "relief-aware prediction off by {with_relief:.1} grey levels");
+        assert!(planar > 2.0 * with_relief, "plane {planar:.1} vs relief {with_relief:.1}");
+    }
 }

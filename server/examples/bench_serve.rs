@@ -28,7 +28,7 @@ fn arg(args: &[String], name: &str) -> Option<String> {
 
 /// Deterministic queries: (bbox, level).
 fn queries(db: &LandmarkDb, n: usize) -> Vec<(GeoBox, u8)> {
-    let levels: Vec<(u8, f64)> = db.levels().unwrap().iter().map(|l| (l.level, l.gsd_m)).collect();
+    let levels = trn_navigator::view::DbLevel::of(&db.levels().unwrap());
     let e = db.extent().unwrap().expect("empty database");
     let h_terrain = 1500.0;
     let cam = CameraModel::from_fov(1024, 768, 32.0);
@@ -37,7 +37,8 @@ fn queries(db: &LandmarkDb, n: usize) -> Vec<(GeoBox, u8)> {
         s = s.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
         (s >> 11) as f64 / (1u64 << 53) as f64
     };
-    let finest = levels.first().unwrap().1;
+    // The resolution at which the finest level's templates span the target size.
+    let finest = levels.first().unwrap().footprint_m / trn_navigator::view::TARGET_PATCH_PX;
     let mut out = Vec::with_capacity(n);
     while out.len() < n {
         // Heights whose centre GSD spans the finest 4 levels.
@@ -51,7 +52,7 @@ fn queries(db: &LandmarkDb, n: usize) -> Vec<(GeoBox, u8)> {
         let pose = CameraPose::look_at(g.to_ecef(), Geodetic::new(lat, lon, h_terrain).to_ecef(), north);
         let fp = footprint(&cam, &pose, &FootprintParams { terrain_h_m: h_terrain, ..Default::default() })
             .unwrap();
-        let level = level_for(&levels, fp.center_gsd_m).unwrap().0;
+        let level = level_for(&levels, fp.center_gsd_m).unwrap().level;
         out.push((fp.bbox, level));
     }
     out

@@ -13,7 +13,7 @@ use trn_camera::{CameraModel, CameraPose, Distortion};
 use trn_geodesy::{Ecef, Enu, Geodetic, LocalFrame};
 use trn_landmark::{GeoBox, Template};
 use trn_navigator::footprint::FootprintParams;
-use trn_navigator::view::{landmarks_in_view, terrain_near, ViewError};
+use trn_navigator::view::{landmarks_in_view, terrain_near, DbLevel, ViewError};
 use trn_navigator::LandmarkSource;
 use utoipa::ToSchema;
 
@@ -223,7 +223,7 @@ fn view_error(field: &str, e: ViewError) -> ApiError {
 
 fn terrain_for(
     source: &dyn LandmarkSource,
-    levels: &[(u8, f64)],
+    levels: &[DbLevel],
     given: Option<f64>,
     at: &Geodetic,
 ) -> Result<f64, ApiError> {
@@ -251,7 +251,7 @@ pub fn check_footprint(
 /// The landmarks one pose can use.
 pub fn footprint_query(
     source: &dyn LandmarkSource,
-    levels: &[(u8, f64)],
+    levels: &[DbLevel],
     req: &FootprintRequest,
 ) -> Result<FootprintResponse, ApiError> {
     let (camera, pose, g, alpha, limit) = check_footprint(req)?;
@@ -449,7 +449,7 @@ fn waypoint_poses(
 /// Usable landmarks at every point of the trajectory, and the stretches below the threshold.
 pub fn coverage_query(
     source: &dyn LandmarkSource,
-    levels: &[(u8, f64)],
+    levels: &[DbLevel],
     req: &CoverageRequest,
 ) -> Result<CoverageReport, ApiError> {
     let (camera, poses) = plan_poses(req)?;
@@ -674,7 +674,7 @@ pub fn run_cli(
             let req: CoverageRequest = serde_json::from_slice(&read_plan()?)
                 .map_err(|e| file_err(plan, format!("not a coverage plan: {e}")))?;
             let conn = trn_store::LandmarkDb::open(db)?;
-            let levels: Vec<(u8, f64)> = conn.levels()?.iter().map(|l| (l.level, l.gsd_m)).collect();
+            let levels = DbLevel::of(&conn.levels()?);
             let report = coverage_query(&conn, &levels, &req).map_err(|e| file_err(plan, e.message))?;
             write_outputs(&report, geojson, png, |area| {
                 let templates = conn.query_bbox(&trn_store::BboxQuery::new(*area))?;

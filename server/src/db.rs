@@ -17,6 +17,7 @@ use tracing::info;
 use trn_landmark::GeoBox;
 use trn_landmark::Template;
 use trn_navigator::source::{LandmarkSource, SourceError};
+use trn_navigator::view::DbLevel;
 use trn_store::{BboxQuery, Catalogue, LandmarkDb, LevelInfo, StoreError};
 use utoipa::ToSchema;
 
@@ -53,7 +54,7 @@ pub struct Database {
     catalogue: Option<Catalogue>,
     pub info: Info,
     /// (level, GSD) of every level, finest first.
-    pub levels: Vec<(u8, f64)>,
+    pub levels: Vec<DbLevel>,
     /// `W/"<database_id>"`.
     pub etag: String,
 }
@@ -139,7 +140,7 @@ impl Database {
             permits: Arc::new(Semaphore::new(conns.len())),
             conns: Mutex::new(conns),
             catalogue,
-            levels: levels_info.iter().map(|l| (l.level, l.gsd_m)).collect(),
+            levels: DbLevel::of(&levels_info),
             etag: format!("W/\"{database_id}\""),
             info,
         })

@@ -345,8 +345,11 @@ fn footprint_and_coverage_count_the_landmarks_in_view() {
     let cam = trn_camera::CameraModel::from_fov(640, 480, 40.0);
     let p: trn_server::coverage::PoseIn = serde_json::from_value(pose.clone()).unwrap();
     let (_, cp) = p.to_pose("pose").unwrap();
-    let levels: Vec<(u8, f64)> = (0..4).map(|l| (l, 4.0 * f64::from(1u32 << l))).collect();
-    let centre = trn_navigator::view::level_for(&levels, j["center_gsd_m"].as_f64().unwrap()).unwrap().0;
+    // The fixture's templates are 16 px at 4 m x 2^level.
+    let levels: Vec<trn_navigator::view::DbLevel> = (0..4)
+        .map(|l| trn_navigator::view::DbLevel { level: l, footprint_m: 16.0 * 4.0 * f64::from(1u32 << l) })
+        .collect();
+    let centre = trn_navigator::view::level_for(&levels, j["center_gsd_m"].as_f64().unwrap()).unwrap().level;
     let mut want: Vec<i64> = f
         .templates
         .iter()

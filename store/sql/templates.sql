@@ -64,6 +64,8 @@ INSERT INTO gpkg_geometry_columns VALUES ('templates', 'geom', 'POLYGON', 4326, 
 CREATE TABLE trn_levels (
     level INTEGER PRIMARY KEY NOT NULL,
     gsd_m DOUBLE NOT NULL,
+    -- Largest template side (pixels): gsd_m * template_px is the level's footprint.
+    template_px INTEGER NOT NULL,
     template_count INTEGER NOT NULL,
     min_lon_deg DOUBLE NOT NULL,
     min_lat_deg DOUBLE NOT NULL,

@@ -33,7 +33,7 @@ pub use writer::DbWriter;
 
 /// Version of the trn schema (tables and columns below the GeoPackage core). Bump it
 /// with every change to `sql/templates.sql` or to the blob encodings.
-pub const SCHEMA_VERSION: u32 = 1;
+pub const SCHEMA_VERSION: u32 = 2;
 
 /// `PRAGMA application_id` of a GeoPackage: 'GPKG'.
 pub const GPKG_APPLICATION_ID: u32 = 0x4750_4B47;
@@ -50,6 +50,9 @@ pub struct LevelInfo {
     pub level: u8,
     /// Smallest ground sample distance among the level's templates (they normally share one).
     pub gsd_m: f64,
+    /// Largest template side in the level (pixels); `gsd_m * template_px` is
+    /// the level's footprint, the scale at which navigators choose levels.
+    pub template_px: u32,
     pub count: u64,
     /// Hull of the level's footprints; never crosses the antimeridian (a footprint that
     /// does counts as the whole longitude range).

@@ -315,7 +315,7 @@ fn parse_metadata(path: &Path, key: &str, text: &str) -> Result<serde_json::Valu
 pub(crate) fn read_levels(conn: &Connection, path: &Path) -> Result<Vec<LevelInfo>, StoreError> {
     let mut stmt = conn
         .prepare_cached(
-            "SELECT level, gsd_m, template_count, min_lon_deg, min_lat_deg, max_lon_deg, max_lat_deg
+            "SELECT level, gsd_m, template_px, template_count, min_lon_deg, min_lat_deg, max_lon_deg, max_lat_deg
              FROM trn_levels ORDER BY level",
         )
         .at(path)?;
@@ -324,8 +324,9 @@ pub(crate) fn read_levels(conn: &Connection, path: &Path) -> Result<Vec<LevelInf
             Ok(LevelInfo {
                 level: r.get(0)?,
                 gsd_m: r.get(1)?,
-                count: r.get::<_, i64>(2)? as u64,
-                extent: GeoBox::new(r.get(3)?, r.get(4)?, r.get(5)?, r.get(6)?),
+                template_px: r.get(2)?,
+                count: r.get::<_, i64>(3)? as u64,
+                extent: GeoBox::new(r.get(4)?, r.get(5)?, r.get(6)?, r.get(7)?),
             })
         })
         .at(path)?;

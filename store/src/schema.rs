@@ -15,8 +15,8 @@ pub(crate) const TEMPLATES_RTREE_SQL: &str = include_str!("../sql/templates_rtre
 pub(crate) const GPKG_RTREE_SQL: &str = include_str!("../sql/gpkg_rtree.sql");
 
 /// One row of trn_levels, the summary of a pyramid level (see writer::write_summaries).
-pub(crate) const INSERT_LEVEL: &str = "INSERT INTO trn_levels (level, gsd_m, template_count,
-    min_lon_deg, min_lat_deg, max_lon_deg, max_lat_deg) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7)";
+pub(crate) const INSERT_LEVEL: &str = "INSERT INTO trn_levels (level, gsd_m, template_px, template_count,
+    min_lon_deg, min_lat_deg, max_lon_deg, max_lat_deg) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8)";
 
 /// The templates layer extent for GIS clients, in geometry coordinates.
 pub(crate) const UPDATE_LAYER_EXTENT: &str = "UPDATE gpkg_contents

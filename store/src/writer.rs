@@ -63,6 +63,7 @@ struct Stored {
     id: i64,
     level: u8,
     gsd_m: f64,
+    template_px: u32,
     footprint: GeoBox,
 }
 
@@ -180,7 +181,13 @@ impl DbWriter {
         tx.commit().at(&self.path)?;
         for (t, id) in templates.iter_mut().zip(first_id..) {
             t.id = id;
-            self.stored.push(Stored { id, level: t.level, gsd_m: t.gsd_m, footprint: t.footprint });
+            self.stored.push(Stored {
+                id,
+                level: t.level,
+                gsd_m: t.gsd_m,
+                template_px: t.width_px.max(t.height_px),
+                footprint: t.footprint,
+            });
         }
         Ok(())
     }
@@ -267,10 +274,12 @@ fn write_summaries(conn: &Connection, path: &Path, stored: &[Stored]) -> Result<
         let l = levels.entry(s.level).or_insert(LevelInfo {
             level: s.level,
             gsd_m: s.gsd_m,
+            template_px: s.template_px,
             count: 0,
             extent: GeoBox::new(lon0, fp.min_lat_deg, lon1, fp.max_lat_deg),
         });
         l.gsd_m = l.gsd_m.min(s.gsd_m);
+        l.template_px = l.template_px.max(s.template_px);
         l.count += 1;
         let e = &mut l.extent;
         e.min_lon_deg = e.min_lon_deg.min(lon0);
@@ -292,6 +301,7 @@ fn write_summaries(conn: &Connection, path: &Path, stored: &[Stored]) -> Result<
             .execute((
                 l.level,
                 l.gsd_m,
+                l.template_px,
                 l.count as i64,
                 e.min_lon_deg,
                 e.min_lat_deg,

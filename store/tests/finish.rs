@@ -56,7 +56,7 @@ const REFERENCE_SQL: &str = "
         footprint_min_lat_deg, footprint_max_lat_deg
     FROM templates;";
 
-const LEVELS_SQL: &str = "SELECT level, min(gsd_m), count(*),
+const LEVELS_SQL: &str = "SELECT level, min(gsd_m), max(max(width_px, height_px)), count(*),
        min(CASE WHEN footprint_min_lon_deg <= footprint_max_lon_deg
                 THEN footprint_min_lon_deg ELSE min(-180.0, footprint_max_lon_deg) END),
        min(footprint_min_lat_deg),

@@ -1,0 +1,277 @@
+//! Which template levels a database holds: a ladder of template *footprints*
+//! (ground side of a template) doubling from level to level, each cut at the
+//! ortho's own resolution with few pixels (fine levels) or from coarser
+//! pyramid levels with more (coarse levels), sized so that every camera
+//! resolution the database serves sees some level's templates span
+//! [`MIN_SPAN_PX`]..[`MAX_SPAN_PX`] image pixels. Pure: no I/O.
+//!
+//! A navigator picks, for a ground resolution of `g` metres per image pixel,
+//! the level whose footprint spans closest to [`TARGET_SPAN_PX`] pixels (the
+//! navigator's own constant of the same value); with footprints doubling,
+//! that level spans `TARGET/√2 .. TARGET·√2` pixels.
+
+use serde::Serialize;
+
+/// Image pixels a navigator wants a template to span (the navigator's
+/// `view::TARGET_PATCH_PX`).
+pub const TARGET_SPAN_PX: f64 = 32.0;
+/// Fewest and most image pixels a template of a used level may span.
+pub const MIN_SPAN_PX: f64 = 12.0;
+pub const MAX_SPAN_PX: f64 = 48.0;
+
+/// The cameras a database built without `--camera` serves: 160x120 to
+/// 1024x768 pixels, 20-60 degree horizontal fields of view, 2 to 40 km
+/// above the terrain, looking down.
+pub const DEFAULT_ENVELOPE: Envelope = Envelope {
+    finest_camera: CameraSpan { width_px: 1024, hfov_deg: 20.0, altitude_m: 2_000.0 },
+    coarsest_camera: CameraSpan { width_px: 160, hfov_deg: 60.0, altitude_m: 40_000.0 },
+};
+
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct CameraSpan {
+    pub width_px: u32,
+    pub hfov_deg: f64,
+    pub altitude_m: f64,
+}
+
+impl CameraSpan {
+    /// Ground sample distance straight down (m per pixel).
+    pub fn nadir_gsd_m(&self) -> f64 {
+        let f = self.width_px as f64 / 2.0 / (self.hfov_deg.to_radians() / 2.0).tan();
+        self.altitude_m / f
+    }
+}
+
+/// The finest- and coarsest-resolution cameras of a default database.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct Envelope {
+    pub finest_camera: CameraSpan,
+    pub coarsest_camera: CameraSpan,
+}
+
+/// A mission: one camera, flown between two heights above the terrain,
+/// looking at most `max_off_nadir_deg` away from straight down (boresight).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct Mission {
+    pub width_px: u32,
+    pub height_px: u32,
+    /// Focal lengths (pixels).
+    pub fx: f64,
+    pub fy: f64,
+    pub altitude_min_m: f64,
+    pub altitude_max_m: f64,
+    pub max_off_nadir_deg: f64,
+}
+
+/// Largest view angle from the vertical at which the navigator uses a
+/// landmark (its default incidence limit).
+pub const MAX_VIEW_DEG: f64 = 75.0;
+
+impl Mission {
+    /// Largest angle between a ray in view and the vertical: the boresight's
+    /// tilt plus half the diagonal field of view, at most [`MAX_VIEW_DEG`].
+    pub fn max_view_deg(&self) -> f64 {
+        let (hw, hh) = (self.width_px as f64 / 2.0 / self.fx, self.height_px as f64 / 2.0 / self.fy);
+        let half_diag = hw.hypot(hh).atan().to_degrees();
+        (self.max_off_nadir_deg + half_diag).min(MAX_VIEW_DEG)
+    }
+
+    /// The camera's ground resolutions over the mission: from straight down
+    /// at the lowest height to the most oblique ray at the highest, stretched
+    /// by the incidence as navigators count it (range / f / sqrt(cos)).
+    pub fn gsd_range(&self) -> GsdRange {
+        let cos = self.max_view_deg().to_radians().cos();
+        GsdRange {
+            finest_m: self.altitude_min_m / self.fx.max(self.fy),
+            coarsest_m: self.altitude_max_m / self.fx.min(self.fy) / (cos * cos.sqrt()),
+        }
+    }
+}
+
+/// Camera ground sample distances (m per image pixel) a database serves.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct GsdRange {
+    pub finest_m: f64,
+    pub coarsest_m: f64,
+}
+
+impl GsdRange {
+    pub fn of_envelope(e: &Envelope) -> Self {
+        GsdRange { finest_m: e.finest_camera.nadir_gsd_m(), coarsest_m: e.coarsest_camera.nadir_gsd_m() }
+    }
+}
+
+/// One template level.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct LevelSpec {
+    pub level: u8,
+    /// Template pixel size on the ground (m): `base_gsd * 2^gsd_step`.
+    pub gsd_m: f64,
+    pub gsd_step: u32,
+    /// Template side (pixels).
+    pub size_px: u32,
+}
+
+impl LevelSpec {
+    /// Ground side of a template (m).
+    pub fn footprint_m(&self) -> f64 {
+        self.gsd_m * self.size_px as f64
+    }
+
+    /// Camera resolutions (m per pixel) at which this level's templates span
+    /// [`MIN_SPAN_PX`]..[`MAX_SPAN_PX`] pixels.
+    pub fn serves(&self) -> GsdRange {
+        GsdRange { finest_m: self.footprint_m() / MAX_SPAN_PX, coarsest_m: self.footprint_m() / MIN_SPAN_PX }
+    }
+}
+
+/// The level ladder: footprints `s0 * base * 2^(j0 + k)`, where `s0` is half
+/// `max_size` when that is at least `min_size` (small native-resolution
+/// templates for cameras finer than the ortho), else `max_size`; each level
+/// cut at the finest pyramid GSD `base * 2^q` that keeps it within
+/// `max_size` pixels. The finest level is the coarsest one whose footprint
+/// still spans at most `TARGET·√2` pixels at `range.finest_m` (or the
+/// smallest footprint the ortho allows: `s0` native pixels); levels are
+/// added until one spans at least `TARGET/√2` pixels at `range.coarsest_m`,
+/// or to `levels` when given. At most 12 levels.
+pub fn ladder(
+    base_gsd_m: f64,
+    min_size: u32,
+    max_size: u32,
+    range: &GsdRange,
+    levels: Option<u8>,
+) -> Vec<LevelSpec> {
+    let s0 = if max_size / 2 >= min_size { max_size / 2 } else { max_size };
+    let f_unit = s0 as f64 * base_gsd_m;
+    let sqrt2 = std::f64::consts::SQRT_2;
+    let j0 = ((TARGET_SPAN_PX * sqrt2 * range.finest_m / f_unit).log2() + 1e-9).floor().max(0.0) as u32;
+    let count = levels.map(u32::from).unwrap_or_else(|| {
+        let mut n = 1;
+        while n < 12 && f_unit * 2f64.powi((j0 + n - 1) as i32) < TARGET_SPAN_PX / sqrt2 * range.coarsest_m {
+            n += 1;
+        }
+        n
+    });
+    (0..count.min(12))
+        .map(|k| {
+            let m = j0 + k;
+            // Footprint = s0 * 2^m native pixels; the pyramid step q keeps the
+            // side s0 * 2^(m - q) within max_size.
+            let q = (0..=m).find(|&q| (s0 as u64) << (m - q) <= max_size as u64).unwrap_or(m);
+            LevelSpec {
+                level: k as u8,
+                gsd_m: base_gsd_m * 2f64.powi(q as i32),
+                gsd_step: q,
+                size_px: s0 << (m - q),
+            }
+        })
+        .collect()
+}
+
+/// Camera resolutions the ladder serves (each level within
+/// [`MIN_SPAN_PX`]..[`MAX_SPAN_PX`]).
+pub fn served(levels: &[LevelSpec]) -> Option<GsdRange> {
+    Some(GsdRange {
+        finest_m: levels.first()?.serves().finest_m,
+        coarsest_m: levels.last()?.serves().coarsest_m,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn default_ladder_on_a_30_m_ortho() {
+        let r = GsdRange::of_envelope(&DEFAULT_ENVELOPE);
+        assert!((r.finest_m - 0.6894).abs() < 1e-3, "{r:?}");
+        assert!((r.coarsest_m - 288.7).abs() < 0.1, "{r:?}");
+        let l = ladder(30.0, 16, 32, &r, None);
+        let got: Vec<(f64, u32)> = l.iter().map(|l| (l.gsd_m, l.size_px)).collect();
+        // 16 px at 30 m (480 m), then 32 px at 30, 60, 120, 240 m.
+        assert_eq!(got, [(30.0, 16), (30.0, 32), (60.0, 32), (120.0, 32), (240.0, 32)]);
+        // The coarsest camera: the top level spans >= TARGET/sqrt2 px.
+        assert!(l[4].footprint_m() / r.coarsest_m >= TARGET_SPAN_PX / 2f64.sqrt());
+        assert!(l[3].footprint_m() / r.coarsest_m < TARGET_SPAN_PX / 2f64.sqrt());
+    }
+
+    #[test]
+    fn every_served_resolution_has_a_level_within_the_span_limits() {
+        for (base, lo, hi) in [(1.0, 0.69, 289.0), (30.0, 10.0, 25.0), (0.5, 3.0, 300.0), (8.0, 0.1, 5000.0)]
+        {
+            let r = GsdRange { finest_m: lo, coarsest_m: hi };
+            let l = ladder(base, 16, 32, &r, None);
+            for w in l.windows(2) {
+                assert!((w[1].footprint_m() / w[0].footprint_m() - 2.0).abs() < 1e-12);
+                assert!(w[1].gsd_m >= w[0].gsd_m);
+            }
+            for s in &l {
+                assert!((12..=32).contains(&s.size_px) && s.gsd_m >= base, "{s:?}");
+                assert!((s.gsd_m / base - 2f64.powi(s.gsd_step as i32)).abs() < 1e-12);
+            }
+            // Brute force over the served range: the navigator's choice (closest to
+            // TARGET in ratio) spans MIN..MAX pixels, wherever the ortho allows.
+            let served = served(&l).unwrap();
+            let n = 400;
+            for i in 0..=n {
+                let g = lo * (hi / lo).powf(i as f64 / n as f64);
+                let best = l
+                    .iter()
+                    .min_by(|a, b| {
+                        let m = |x: &LevelSpec| (x.footprint_m() / g / TARGET_SPAN_PX).ln().abs();
+                        m(a).total_cmp(&m(b))
+                    })
+                    .unwrap();
+                let span = best.footprint_m() / g;
+                if g >= served.finest_m && g <= served.coarsest_m {
+                    assert!((MIN_SPAN_PX..=MAX_SPAN_PX).contains(&span), "base {base} g {g}: {span} px");
+                }
+                // Finer than the ortho can serve: the finest level, too big, is chosen.
+                if g < served.finest_m {
+                    assert_eq!(best.level, 0);
+                }
+            }
+            if lo * 16.0 * 1.5 >= base * 16.0 {
+                assert!(served.finest_m <= lo, "base {base}: {served:?}");
+            }
+            assert!(served.coarsest_m >= hi || l.len() == 12, "base {base}: {served:?}");
+        }
+    }
+
+    #[test]
+    fn explicit_levels_and_one_size() {
+        let r = GsdRange { finest_m: 1.0, coarsest_m: 1.0 };
+        let l = ladder(2.0, 32, 32, &r, Some(3));
+        let got: Vec<(f64, u32)> = l.iter().map(|l| (l.gsd_m, l.size_px)).collect();
+        assert_eq!(got, [(2.0, 32), (4.0, 32), (8.0, 32)]);
+        // Half the largest size is below the smallest: one size.
+        assert!(ladder(2.0, 12, 16, &r, Some(2)).iter().all(|l| l.size_px == 16));
+        // 24 px: 12-px native templates first.
+        let l = ladder(2.0, 12, 24, &r, Some(3));
+        assert_eq!(
+            l.iter().map(|l| (l.gsd_m, l.size_px)).collect::<Vec<_>>(),
+            [(2.0, 12), (2.0, 24), (4.0, 24)]
+        );
+    }
+
+    #[test]
+    fn mission_range_follows_height_and_view_angle() {
+        let m = Mission {
+            width_px: 200,
+            height_px: 150,
+            fx: 300.0,
+            fy: 300.0,
+            altitude_min_m: 3_000.0,
+            altitude_max_m: 9_000.0,
+            max_off_nadir_deg: 0.0,
+        };
+        // Half diagonal: atan(125 / 300).
+        assert!((m.max_view_deg() - (125f64 / 300.0).atan().to_degrees()).abs() < 1e-9);
+        let r = m.gsd_range();
+        assert!((r.finest_m - 10.0).abs() < 1e-9);
+        let cos = (125f64 / 300.0).atan().cos();
+        assert!((r.coarsest_m - 30.0 / cos.powf(1.5)).abs() < 1e-9);
+        let tilted = Mission { max_off_nadir_deg: 80.0, ..m };
+        assert_eq!(tilted.max_view_deg(), MAX_VIEW_DEG);
+    }
+}

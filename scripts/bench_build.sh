@@ -9,6 +9,7 @@ cd "$(dirname "$0")/.."
 size=${1:-10000}
 data=target/bench-data
 mkdir -p "$data"
+scripts/install-deps.sh
 cargo build --release --quiet --bin trn -p trn -p trn-builder --example gdal_read
 trn=target/release/trn
 ortho="$data/synth-$size.tif"; dem="$data/synth-$size-dem.tif"
@@ -24,18 +25,21 @@ best=""
 for run in 1 2; do
   rm -f "$data/bench.gpkg"
   t0=$(date +%s.%N)
-  TRN_LOG=warn "$trn" build --ortho "$ortho" --dem "$dem" --dem-vertical ellipsoid --out "$data/bench.gpkg" > "$data/report.json"
+  TRN_LOG=warn /usr/bin/time -f "%M" -o "$data/rss-$run.txt" \
+    "$trn" build --ortho "$ortho" --dem "$dem" --dem-vertical ellipsoid --out "$data/bench.gpkg" > "$data/report.json"
   t1=$(date +%s.%N)
   s=$(python3 -c "print(round($t1-$t0, 3))")
   if [ -z "$best" ] || python3 -c "import sys; sys.exit(0 if $s < $best else 1)"; then best=$s; fi
 done
 templates=$(python3 -c "import json; print(json.load(open('$data/report.json'))['templates'])")
+rss_mb=$(python3 -c "print(round(max(int(open('$data/rss-%d.txt' % r).read().split()[-1]) for r in (1, 2)) / 1024))")
 ratio=$(python3 -c "print(round($best/$read_s, 2))")
 cores=$(nproc)
 cat > "$data/build_throughput.json" <<JSON
-{"megapixels": $mp, "cores": $cores, "gdal_read_s": $read_s, "build_s": $best, "ratio": $ratio, "templates": $templates}
+{"megapixels": $mp, "cores": $cores, "gdal_read_s": $read_s, "build_s": $best, "ratio": $ratio, "templates": $templates, "peak_rss_mb": $rss_mb}
 JSON
 echo "raster: ${mp} MP RGB DEFLATE GeoTIFF, ${cores} cores"
 echo "GDAL read (all bands, native type, best of 3): ${read_s} s"
 echo "trn build (best of 2):                         ${best} s  -> ${templates} templates"
 echo "ratio build / GDAL read:                       ${ratio}x  ($(python3 -c "print(round($mp/$best, 1))") MP/s)"
+echo "peak resident memory of trn build:             ${rss_mb} MB"

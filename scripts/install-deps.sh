@@ -5,7 +5,7 @@
 # Skips apt entirely when everything is already there. Needs a Rust toolchain
 # (cargo >= 1.85, e.g. from rustup) on the PATH.
 set -euo pipefail
-pkgs=(libgdal-dev gdal-bin proj-data libsqlite3-dev pkg-config python3-venv python3-pip fonts-dejavu-core)
+pkgs=(libgdal-dev gdal-bin proj-data libsqlite3-dev pkg-config python3-venv python3-pip fonts-dejavu-core time)
 missing=()
 for p in "${pkgs[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

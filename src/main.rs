@@ -83,7 +83,8 @@ struct BuildArgs {
     #[arg(long, default_value_t = 12)]
     min_template_size: u32,
     /// Landmark spacing: one cell of this many template pixels gets
-    /// --per-cell landmarks (default: half the level's template size).
+    /// --per-cell landmarks (default: the level's template size; with
+    /// --camera, what puts ~120 cells in the camera's view, 0.5-2 sizes).
     #[arg(long)]
     spacing: Option<u32>,
     #[arg(long, default_value_t = 1)]
@@ -98,14 +99,20 @@ struct BuildArgs {
     /// Size the database for this camera (camera.json of the flight format)
     /// flown at --altitude; default: cameras of 160x120 to 1024x768 pixels,
     /// 20-60 deg fields of view, 2-40 km above the terrain.
-    #[arg(long, requires = "altitude")]
+    #[arg(long)]
     camera: Option<PathBuf>,
     /// Heights above the terrain the mission flies, MIN..MAX metres (with --camera).
-    #[arg(long, requires = "camera", value_parser = parse_altitude)]
+    #[arg(long, value_parser = parse_altitude)]
     altitude: Option<(f64, f64)>,
-    /// Largest angle of the camera's boresight from straight down (deg, with --camera).
-    #[arg(long, requires = "camera", default_value_t = 0.0)]
-    max_off_nadir: f64,
+    /// Largest angle of the camera's boresight from straight down (deg, with
+    /// --camera; default 0).
+    #[arg(long)]
+    max_off_nadir: Option<f64>,
+    /// A planned trajectory (the JSON of `trn coverage --plan`): the report then
+    /// gives the landmarks in view at each of its points and the stretches below
+    /// the plan's threshold, in the new database.
+    #[arg(long)]
+    coverage_plan: Option<PathBuf>,
     /// Minimum grey-level standard deviation of a template.
     #[arg(long, default_value_t = 6.0)]
     min_contrast: f32,
@@ -358,6 +365,13 @@ fn run_build(a: BuildArgs) -> anyhow::Result<()> {
     o.per_cell = a.per_cell;
     o.levels = a.levels;
     o.base_gsd_m = a.base_gsd;
+    // One-line errors (clap's own "required arguments" message spans lines).
+    match (&a.camera, a.altitude, a.max_off_nadir) {
+        (Some(_), None, _) => anyhow::bail!("--camera needs --altitude MIN..MAX (metres above the terrain)"),
+        (None, Some(_), _) => anyhow::bail!("--altitude needs --camera camera.json"),
+        (None, None, Some(_)) => anyhow::bail!("--max-off-nadir needs --camera and --altitude"),
+        _ => {}
+    }
     if let (Some(camera), Some((lo, hi))) = (&a.camera, a.altitude) {
         let c = trn_flight::read_camera(camera)?.model;
         o.mission = Some(trn_builder::sizing::Mission {
@@ -367,7 +381,7 @@ fn run_build(a: BuildArgs) -> anyhow::Result<()> {
             fy: c.fy,
             altitude_min_m: lo,
             altitude_max_m: hi,
-            max_off_nadir_deg: a.max_off_nadir,
+            max_off_nadir_deg: a.max_off_nadir.unwrap_or(0.0),
         });
     }
     o.min_contrast_std = a.min_contrast;
@@ -376,8 +390,43 @@ fn run_build(a: BuildArgs) -> anyhow::Result<()> {
     o.max_second_peak = a.max_second_peak;
     o.max_relief_gsd = a.max_relief;
     o.max_hidden_share = a.max_hidden;
+    // The plan is checked before the build: a bad one leaves nothing at --out.
+    let plan = match &a.coverage_plan {
+        Some(p) => {
+            let text = std::fs::read(p).map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
+            let req: trn_server::coverage::CoverageRequest = serde_json::from_slice(&text)
+                .map_err(|e| anyhow::anyhow!("{}: not a coverage plan: {e}", p.display()))?;
+            trn_server::coverage::plan_poses(&req)
+                .map_err(|e| anyhow::anyhow!("{}: {}", p.display(), e.message))?;
+            Some((p, req))
+        }
+        None => None,
+    };
     let report = trn_builder::build(&o, &cancel)?;
-    println!("{}", serde_json::to_string_pretty(&report)?);
+    let mut json = serde_json::to_value(&report)?;
+    if let Some((p, req)) = plan {
+        let db = trn_store::LandmarkDb::open(&report.out)?;
+        let levels = trn_navigator::view::DbLevel::of(&db.levels()?);
+        let cov = trn_server::coverage::coverage_query(&db, &levels, &req)
+            .map_err(|e| anyhow::anyhow!("{}: {}", p.display(), e.message))?;
+        let mut n: Vec<usize> = cov.points.iter().map(|q| q.landmarks).collect();
+        n.sort_unstable();
+        tracing::info!(
+            "coverage of {}: {} points, landmarks in view min {} / median {}, {} stretch(es) below {}",
+            p.display(),
+            n.len(),
+            cov.min_landmarks,
+            n.get(n.len() / 2).copied().unwrap_or(0),
+            cov.stretches.len(),
+            cov.threshold
+        );
+        json["coverage"] = serde_json::json!({
+            "plan": p,
+            "median_landmarks": n.get(n.len() / 2).copied().unwrap_or(0),
+            "report": cov,
+        });
+    }
+    println!("{}", serde_json::to_string_pretty(&json)?);
     Ok(())
 }
 

@@ -285,7 +285,10 @@ fn bad_output_folder_and_numeric_options() {
         ("--max-second-peak", "1.5"),
         ("--max-relief", "-1"),
         ("--max-relief", "nan"),
-        ("--max-gsd", "-5"),
+        ("--min-template-size", "4"),
+        ("--min-template-size", "64"),
+        ("--max-hidden", "-0.1"),
+        ("--max-hidden", "1.5"),
         ("--min-contrast", "nan"),
         ("--min-shi-tomasi", "-1"),
         ("--search-radius", "0"),
@@ -296,6 +299,46 @@ fn bad_output_folder_and_numeric_options() {
         let e = fails(d, &keep_sub, &args, &[option]);
         eprintln!("{e}");
     }
+}
+
+/// The mission (`--camera`, `--altitude`) and the coverage plan are checked
+/// before any work: a bad one names its file or option and leaves nothing.
+#[test]
+fn bad_mission_and_coverage_plan() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let (ortho, dem) = common::synth(d, 64, 8.0, 440000.0, 1);
+    let out = d.join("db.gpkg");
+    let camera = d.join("camera.json");
+    std::fs::write(&camera, common::CAMERA_640_JSON).unwrap();
+    let bad_plan = d.join("plan.json");
+    std::fs::write(&bad_plan, "{\"camera\": {\"width\": 640}}").unwrap();
+    let not_json = d.join("not-a-camera.json");
+    std::fs::write(&not_json, "width: 640").unwrap();
+    let keep = [ortho.as_path(), dem.as_path(), camera.as_path(), bad_plan.as_path(), not_json.as_path()];
+    let base = ["--ortho", s(&ortho), "--dem", s(&dem), "--dem-vertical", "ellipsoid", "--out", s(&out)];
+    let cases: [(Vec<&str>, Vec<&str>); 6] = [
+        (vec!["--camera", s(&camera), "--altitude", "9000..3000"], vec!["--altitude"]),
+        (vec!["--camera", s(&camera), "--altitude", "3 km"], vec!["--altitude"]),
+        (vec!["--camera", s(&camera), "--altitude", "0..3000"], vec!["--altitude"]),
+        (vec!["--camera", "no-such-camera.json", "--altitude", "1000..3000"], vec!["no-such-camera.json"]),
+        (vec!["--camera", s(&not_json), "--altitude", "1000..3000"], vec!["not-a-camera.json"]),
+        (vec!["--coverage-plan", s(&bad_plan)], vec!["plan.json"]),
+    ];
+    for (extra, needles) in cases {
+        let e = fails(d, &keep, &[&base[..], &extra[..]].concat(), &needles);
+        eprintln!("{e}");
+    }
+    // A mission without --camera, or --max-off-nadir out of range.
+    let e = fails(d, &keep, &[&base[..], &["--altitude", "1000..3000"]].concat(), &["--camera"]);
+    eprintln!("{e}");
+    let e = fails(
+        d,
+        &keep,
+        &[&base[..], &["--camera", s(&camera), "--altitude", "1000..3000", "--max-off-nadir", "95"]].concat(),
+        &["--max-off-nadir"],
+    );
+    eprintln!("{e}");
 }
 
 #[test]

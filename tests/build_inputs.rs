@@ -1173,3 +1173,80 @@ fn dem_compound_crs_with_ellipsoidal_height_needs_no_flag() {
     assert!(line.contains("ellipsoidal") && line.contains("file"), "log: {line}");
     assert_same_templates(&b, &ell, 0, 1e-6);
 }
+
+/// `--camera/--altitude` sizes the ladder for the mission (every altitude of
+/// it sees a level whose templates span 12-48 px), and `--coverage-plan` puts
+/// in the report exactly what `trn coverage` says of the new database.
+#[test]
+fn mission_sizing_and_coverage_in_the_report() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let (ortho, dem) = synth(d);
+    let camera = d.join("camera.json");
+    std::fs::write(&camera, common::CAMERA_640_JSON).unwrap();
+    // Across the 1.6 km map, 1.45 km above its terrain (1520-1560 m), looking down.
+    let plan = d.join("plan.json");
+    std::fs::write(
+        &plan,
+        format!(
+            r#"{{"camera": {}, "waypoints": [{{"lat_deg": 40.2815, "lon_deg": -105.7045, "h_m": 3000}},
+                {{"lat_deg": 40.2815, "lon_deg": -105.6905, "h_m": 3000}}], "step_m": 200, "threshold": 20}}"#,
+            common::CAMERA_640_JSON
+        ),
+    )
+    .unwrap();
+    let out = d.join("mission.gpkg");
+    let o = common::run(&[
+        "build",
+        "--ortho",
+        s(&ortho),
+        "--dem",
+        s(&dem),
+        "--dem-vertical",
+        "ellipsoid",
+        "--camera",
+        s(&camera),
+        "--altitude",
+        "500..3000",
+        "--coverage-plan",
+        s(&plan),
+        "--out",
+        s(&out),
+    ]);
+    assert!(o.status.success(), "{}", common::stderr(&o));
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    // The mission's resolutions: 500 m / 800 px straight down, 3000 m at the corner ray.
+    let sized = &r["sized_for_gsd_m"];
+    assert!((sized["finest_m"].as_f64().unwrap() - 0.625).abs() < 1e-9, "{sized}");
+    let corner = (400f64 / 800.0).atan().cos();
+    assert!((sized["coarsest_m"].as_f64().unwrap() - 3000.0 / 800.0 / corner.powf(1.5)).abs() < 1e-9);
+    // Brute force over the mission's resolutions: the level a navigator picks
+    // (closest to 32 px) spans 12..48 px wherever the 2 m ortho allows.
+    let levels = r["levels"].as_array().unwrap();
+    let footprints: Vec<f64> = levels.iter().map(|l| l["footprint_m"].as_f64().unwrap()).collect();
+    let serves = &r["serves_gsd_m"];
+    let (lo, hi) = (serves["finest_m"].as_f64().unwrap(), serves["coarsest_m"].as_f64().unwrap());
+    assert!(hi >= sized["coarsest_m"].as_f64().unwrap(), "{serves}");
+    for i in 0..=200 {
+        let g = 0.625 * (sized["coarsest_m"].as_f64().unwrap() / 0.625).powf(i as f64 / 200.0);
+        let best = footprints
+            .iter()
+            .map(|f| f / g)
+            .min_by(|a, b| (a / 32.0).ln().abs().total_cmp(&(b / 32.0).ln().abs()))
+            .unwrap();
+        if g >= lo {
+            assert!((12.0..=48.0).contains(&best), "at {g} m/px the chosen level spans {best} px");
+        }
+    }
+    // Landmarks per km² and rejections reported per level.
+    for l in levels {
+        assert!(l["per_km2"].as_f64().unwrap() >= 0.0 && l["empty_cells"].is_object(), "{l}");
+    }
+    // The coverage in the report is trn coverage's.
+    let cov = common::run(&["coverage", "--db", s(&out), "--plan", s(&plan)]);
+    assert!(cov.status.success(), "{}", common::stderr(&cov));
+    let want: serde_json::Value = serde_json::from_slice(&cov.stdout).unwrap();
+    assert_eq!(r["coverage"]["report"], want);
+    let points = want["points"].as_array().unwrap();
+    assert!(points.len() >= 5 && points.iter().all(|p| p["landmarks"].as_u64().unwrap() > 0), "{want}");
+}

@@ -68,8 +68,9 @@ pub struct BuildOptions {
     /// this big (see [`sizing::ladder`]).
     pub min_template_size: u32,
     /// Side of the cell that gets `per_cell` landmarks, in the level's
-    /// template pixels; `None`: half the level's template size (four
-    /// landmark cells per template footprint: templates overlap).
+    /// template pixels; `None`: the level's template size times its share
+    /// from [`sizing::spacing_shares`] (one template footprint without a
+    /// mission; with one, what gives its camera enough landmarks in view).
     pub spacing_px: Option<u32>,
     pub per_cell: usize,
     /// Number of levels; `None`: as many as the served camera resolutions need.
@@ -125,9 +126,10 @@ impl BuildOptions {
         }
     }
 
-    /// Cell side (template pixels) of a level of `size_px` templates.
-    pub fn spacing(&self, size_px: u32) -> u32 {
-        self.spacing_px.unwrap_or((size_px / 2).max(1))
+    /// Cell side (template pixels) of a level of `size_px` templates whose
+    /// default cell is `share` of its footprint ([`sizing::spacing_shares`]).
+    pub fn spacing(&self, size_px: u32, share: f64) -> u32 {
+        self.spacing_px.unwrap_or(((size_px as f64 * share).round() as u32).max(1))
     }
 
     /// Camera resolutions the database is sized for.
@@ -246,6 +248,8 @@ pub struct LevelReport {
     pub gsd_m: f64,
     pub template_px: u32,
     pub footprint_m: f64,
+    /// Side of the selection cell that keeps one landmark (m).
+    pub cell_m: f64,
     pub templates: usize,
     /// Ortho area with usable pixels (selection cells with a valid,
     /// unsaturated window), km², and landmarks per km² of it.
@@ -279,6 +283,9 @@ impl LevelTally {
     }
 
     fn merge(&mut self, o: &LevelTally) {
+        if self.cell_area_m2 == 0.0 {
+            self.cell_area_m2 = o.cell_area_m2;
+        }
         self.covered_m2 += o.covered_m2;
         self.cells += o.cells;
         for (k, v) in &o.rejected {
@@ -436,6 +443,7 @@ pub fn build(opts: &BuildOptions, cancel: &AtomicBool) -> Result<BuildReport> {
                 gsd_m: s.gsd_m,
                 template_px: s.size_px,
                 footprint_m: s.footprint_m(),
+                cell_m: t.cell_area_m2.sqrt(),
                 templates: n,
                 covered_km2: km2,
                 per_km2: if km2 > 0.0 { n as f64 / km2 } else { 0.0 },
@@ -776,6 +784,7 @@ fn build_group(
     // Pyramid level p whose pixels are at most as coarse as the finest step.
     let offset = ((base_gsd / native).log2() + 1e-9).floor().max(0.0) as usize;
     let top = offset + specs.iter().map(|s| s.gsd_step as usize).max().unwrap_or(0);
+    let shares = sizing::spacing_shares(specs, &opts.gsd_range(), opts.mission.as_ref());
     let plans_for = |p: usize| -> Vec<LevelPlan> {
         let Some(step) = p.checked_sub(offset) else { return Vec::new() };
         let scale = 2f64.powi(p as i32);
@@ -788,7 +797,7 @@ fn build_group(
                 let (t, gsd) = (s.size_px as f64, s.gsd_m);
                 let win_w = (t * gsd / px_w).round().max(4.0) as usize;
                 let win_h = (t * gsd / px_h).round().max(4.0) as usize;
-                let sp = opts.spacing(s.size_px) as f64 * gsd;
+                let sp = opts.spacing(s.size_px, shares[index]) as f64 * gsd;
                 let r = (opts.search_radius_px as f64 * gsd / px_w.min(px_h)).round().max(2.0) as usize;
                 LevelPlan {
                     index,
@@ -1048,13 +1057,14 @@ fn tile_templates(
 }
 
 /// Where mosaics in different CRSs overlap, keeps the most distinctive of
-/// templates of one level from different mosaics closer than half a cell.
+/// templates of one level from different mosaics closer than half the
+/// smallest default cell (a quarter of a template) or half `--spacing`.
 fn dedupe(mut all: Vec<Template>, opts: &BuildOptions) -> Vec<Template> {
     all.sort_by(|a, b| a.quality.second_peak_ncc.total_cmp(&b.quality.second_peak_ncc));
     let mut kept: Vec<Template> = Vec::new();
     let mut grid: HashMap<(u8, i64, i64), Vec<usize>> = HashMap::new();
     for t in all {
-        let min_d = 0.5 * opts.spacing(t.width_px) as f64 * t.gsd_m;
+        let min_d = 0.5 * opts.spacing(t.width_px, 0.5) as f64 * t.gsd_m;
         let (m_lat, m_lon) = trn_geodesy::metres_per_degree(t.center.lat_deg);
         let cell = |v: f64, m: f64| (v * m / min_d).floor() as i64;
         let (cy, cx) = (cell(t.center.lat_deg, m_lat), cell(t.center.lon_deg, m_lon));

@@ -63,6 +63,10 @@ pub struct Mission {
     pub max_off_nadir_deg: f64,
 }
 
+/// Selection cells a mission's camera should see (about half hold a usable
+/// landmark over real scenes with water and bare ground: 60 in view).
+pub const CELLS_IN_VIEW: f64 = 120.0;
+
 /// Largest view angle from the vertical at which the navigator uses a
 /// landmark (its default incidence limit).
 pub const MAX_VIEW_DEG: f64 = 75.0;
@@ -74,6 +78,14 @@ impl Mission {
         let (hw, hh) = (self.width_px as f64 / 2.0 / self.fx, self.height_px as f64 / 2.0 / self.fy);
         let half_diag = hw.hypot(hh).atan().to_degrees();
         (self.max_off_nadir_deg + half_diag).min(MAX_VIEW_DEG)
+    }
+
+    /// Cell side (share of a template footprint) that puts
+    /// [`CELLS_IN_VIEW`] selection cells in the image where a level's
+    /// templates span `span_px` pixels, between 0.5 and 2.
+    pub fn spacing_share(&self, span_px: f64) -> f64 {
+        let footprints = (self.width_px as f64 / span_px) * (self.height_px as f64 / span_px);
+        (footprints / CELLS_IN_VIEW).sqrt().clamp(0.5, 2.0)
     }
 
     /// The camera's ground resolutions over the mission: from straight down
@@ -163,6 +175,30 @@ pub fn ladder(
                 gsd_m: base_gsd_m * 2f64.powi(q as i32),
                 gsd_step: q,
                 size_px: s0 << (m - q),
+            }
+        })
+        .collect()
+}
+
+/// Cell side of each level (share of its footprint). A level is used down to
+/// the resolution where the next finer one takes over, where its templates
+/// span their widest: `TARGET·√2` px, or more for the finest level when the
+/// camera resolves finer than the ortho can serve (its templates then span
+/// `footprint / range.finest_m` px, and fewer fit in the image). With a
+/// mission: what puts [`CELLS_IN_VIEW`] cells in its camera's view there
+/// ([`Mission::spacing_share`]). Without one: one footprint, and half of one
+/// for a finest level that cannot serve the finest resolution asked for.
+pub fn spacing_shares(levels: &[LevelSpec], range: &GsdRange, mission: Option<&Mission>) -> Vec<f64> {
+    let widest = TARGET_SPAN_PX * std::f64::consts::SQRT_2;
+    levels
+        .iter()
+        .enumerate()
+        .map(|(k, l)| {
+            let span = if k == 0 { (l.footprint_m() / range.finest_m).max(widest) } else { widest };
+            match mission {
+                Some(m) => m.spacing_share(span),
+                None if span > widest * 1.001 => 0.5,
+                None => 1.0,
             }
         })
         .collect()
@@ -273,5 +309,27 @@ mod tests {
         assert!((r.coarsest_m - 30.0 / cos.powf(1.5)).abs() < 1e-9);
         let tilted = Mission { max_off_nadir_deg: 80.0, ..m };
         assert_eq!(tilted.max_view_deg(), MAX_VIEW_DEG);
+        // 200x150 at 45 px per footprint: 14.8 footprints, cells of half one (the floor).
+        let widest = TARGET_SPAN_PX * 2f64.sqrt();
+        assert_eq!(m.spacing_share(widest), 0.5);
+        // 1024x768: 388 footprints -> 120 cells of 1.8 footprints.
+        let big = Mission { width_px: 1024, height_px: 768, ..m };
+        let share = big.spacing_share(widest);
+        let cells = (1024.0 / widest) * (768.0 / widest) / (share * share);
+        assert!((cells - CELLS_IN_VIEW).abs() < 0.5 && share > 1.7 && share < 1.9, "{share} {cells}");
+        // Per level: the 30 m ortho cannot serve the 200x150 camera's 10 m/px
+        // (its finest level spans 48 px there), the others span 45 px at most.
+        let r = m.gsd_range();
+        let l = ladder(30.0, 12, 32, &r, None);
+        let s = spacing_shares(&l, &r, Some(&m));
+        assert!(s.iter().all(|&x| x == 0.5), "{s:?}");
+        let sb = spacing_shares(&l, &r, Some(&big));
+        assert!(sb[0] < sb[1] && (sb[1] - share).abs() < 1e-12, "{sb:?}");
+        // Without a mission: one footprint, half one where the ortho is too coarse.
+        let env = GsdRange::of_envelope(&DEFAULT_ENVELOPE);
+        let l = ladder(30.0, 12, 32, &env, None);
+        assert_eq!(spacing_shares(&l, &env, None)[..2], [0.5, 1.0]);
+        let l = ladder(0.5, 12, 32, &env, None);
+        assert!(spacing_shares(&l, &env, None).iter().all(|&x| x == 1.0));
     }
 }

@@ -140,6 +140,24 @@ impl HeightGrid {
             return out;
         }
         let rise = 1.0 / view_deg.to_radians().tan();
+        // Terrain that never rises faster than the line of sight hides nothing:
+        // the bilinear surface's slope along any direction is at most the sum of
+        // its steepest east and north node differences.
+        let h = |r: usize, c: usize| self.heights_m[r * n + c] as f64;
+        let (mut gx, mut gy) = (0.0f64, 0.0f64);
+        for r in 0..n {
+            for c in 0..n {
+                if c + 1 < n {
+                    gx = gx.max((h(r, c + 1) - h(r, c)).abs());
+                }
+                if r + 1 < n {
+                    gy = gy.max((h(r + 1, c) - h(r, c)).abs());
+                }
+            }
+        }
+        if (gx + gy) / self.spacing_m <= rise {
+            return out;
+        }
         let half = (n as f64 - 1.0) / 2.0 * self.spacing_m;
         let step = self.spacing_m / 2.0;
         for (a, share) in out.iter_mut().enumerate() {

@@ -138,11 +138,12 @@ const VELOCITY_KNOWN_SIGMA_M_S: f64 = 5.0;
 /// trade) would give 100 m/s of error.
 const VELOCITY_WINDOW_S: f64 = 8.0;
 const VELOCITY_MIN_SPAN_S: f64 = 2.0;
-/// Attitude error (deg, 1 sigma per axis) the gyro prior always allows on
-/// top of the filter's: what the camera's calibration and clock errors move
-/// an image's attitude between frames (a 0.3% focal error or a few ms of
-/// clock offset during a spin), which the filter does not model.
-const ATTITUDE_PRIOR_FLOOR_DEG: f64 = 0.05;
+/// Attitude disagreement (deg, 1 sigma per axis) between the image and the
+/// gyro prior that the gate below allows on top of the filter's covariance:
+/// what the camera's calibration and clock errors move an image's attitude
+/// between frames (a 0.3% focal error, a few ms of clock offset during a
+/// spin), which the filter does not model. The prior itself stays tight.
+const ATTITUDE_GATE_FLOOR_DEG: f64 = 0.05;
 /// A refined attitude farther than this (squared Mahalanobis distance, 3
 /// degrees of freedom, 99.9%) from the gyro prior means the two disagree:
 /// the frame is refined again with the prior loosened.
@@ -365,8 +366,7 @@ impl<'a> Navigator<'a> {
         propagated: &Matrix6<f64>,
         image: GreyImage,
     ) -> Result<Solution, usize> {
-        let att_cov: Matrix3<f64> = propagated.fixed_view::<3, 3>(0, 0).into_owned()
-            + Matrix3::identity() * ATTITUDE_PRIOR_FLOOR_DEG.to_radians().powi(2);
+        let att_cov: Matrix3<f64> = propagated.fixed_view::<3, 3>(0, 0).into_owned();
         let sigma_rad = att_cov.trace().sqrt();
         let prior = self
             .params
@@ -516,7 +516,13 @@ impl<'a> Navigator<'a> {
         let mut refined = refine_pose(&self.camera, &in_px, &in_pts, &r.pose, &opts).ok_or(n)?;
         let mut prior_loosened = false;
         if let Some(p) = prior {
-            let d2 = p.mahalanobis2(&refined.pose.q_ecef_cam).unwrap_or(f64::INFINITY);
+            // Gated with the floor: the image may disagree with the gyro by what
+            // calibration and clock errors explain without the prior being wrong.
+            let gate = AttitudePrior {
+                covariance: p.covariance + Matrix3::identity() * ATTITUDE_GATE_FLOOR_DEG.to_radians().powi(2),
+                ..*p
+            };
+            let d2 = gate.mahalanobis2(&refined.pose.q_ecef_cam).unwrap_or(f64::INFINITY);
             if d2 > PRIOR_GATE_CHI2 {
                 // The image and the gyro disagree (a bad earlier fix, or more
                 // drift than modelled): trust the image.

@@ -136,3 +136,7 @@ pub fn nav_fixture() -> NavFixture {
     assert!(o.status.success(), "simulate failed: {}", stderr(&o));
     NavFixture { dir, db, flight }
 }
+
+/// A flight-format `camera.json`: 640 x 480 px, fx = fy = 800 px (43.6 deg).
+pub const CAMERA_640_JSON: &str = r#"{"width": 640, "height": 480, "fx": 800.0, "fy": 800.0, "cx": 319.5, "cy": 239.5,
+  "distortion": {"k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "k3": 0.0}, "q_cam_imu": [1.0, 0.0, 0.0, 0.0]}"#;

@@ -89,8 +89,6 @@ pub struct TerrainNear {
     /// Median height of the coarsest level's templates within
     /// [`TERRAIN_RADIUS_M`] (0 when there are none).
     pub height_m: f64,
-    /// Side of those templates (px), if any.
-    pub template_px: Option<f64>,
 }
 
 /// See [`TerrainNear`].
@@ -108,15 +106,12 @@ pub fn terrain_near(
         (at.lat_deg + dlat).min(90.0),
     );
     let Some(coarsest) = levels.iter().map(|l| l.level).max() else {
-        return Ok(TerrainNear { height_m: 0.0, template_px: None });
+        return Ok(TerrainNear { height_m: 0.0 });
     };
     let near = source.query(&bbox, coarsest)?;
     let mut h: Vec<f64> = near.iter().map(|t| t.center.h_m).collect();
     h.sort_by(f64::total_cmp);
-    Ok(TerrainNear {
-        height_m: h.get(h.len() / 2).copied().unwrap_or(0.0),
-        template_px: near.first().map(|t| t.width_px as f64),
-    })
+    Ok(TerrainNear { height_m: h.get(h.len() / 2).copied().unwrap_or(0.0) })
 }
 
 /// The landmarks a pose can use.

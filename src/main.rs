@@ -133,6 +133,13 @@ struct BuildArgs {
     /// view angles (self-occlusion).
     #[arg(long, default_value_t = 0.5)]
     max_hidden: f64,
+    /// Bake a sun into the templates: AZ,EL degrees (azimuth clockwise from
+    /// north, elevation above the horizon), optionally ,DIFFUSE (share of
+    /// sky light, default 0.25). Shading and cast shadows from the DEM are
+    /// rendered onto the ortho; repeat for several suns (each landmark is
+    /// then stored once per sun, and navigators pick theirs with --sun).
+    #[arg(long = "sun", value_parser = parse_sun)]
+    suns: Vec<trn_landmark::lighting::SunLight>,
     /// Worker threads (default: all cores).
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=1024))]
     threads: Option<u32>,
@@ -275,6 +282,15 @@ struct NavigateArgs {
     /// where the pose guess predicted each landmark blue with a line to the match.
     #[arg(long)]
     matches_dir: Option<PathBuf>,
+    /// The sun during the flight, AZ,EL degrees: with a database built with
+    /// several `--sun`s, the templates baked under the nearest are used
+    /// (default: its first sun).
+    #[arg(long, value_parser = parse_sun)]
+    sun: Option<trn_landmark::lighting::SunLight>,
+    /// Weight of a template's shading share in the choice of landmarks when
+    /// the database's lighting is not the flight's sun (0: ignored).
+    #[arg(long, default_value_t = 0.5)]
+    shading_weight: f64,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -390,6 +406,7 @@ fn run_build(a: BuildArgs) -> anyhow::Result<()> {
     o.max_second_peak = a.max_second_peak;
     o.max_relief_gsd = a.max_relief;
     o.max_hidden_share = a.max_hidden;
+    o.suns = a.suns.clone();
     // The plan is checked before the build: a bad one leaves nothing at --out.
     let plan = match &a.coverage_plan {
         Some(p) => {
@@ -441,6 +458,31 @@ fn parse_altitude(s: &str) -> Result<(f64, f64), String> {
         return Err(format!("{s:?}: needs 0 < MIN <= MAX"));
     }
     Ok((lo, hi))
+}
+
+/// `AZ,EL[,DIFFUSE]` (degrees, share) as a sun.
+fn parse_sun(s: &str) -> Result<trn_landmark::lighting::SunLight, String> {
+    let parts: Vec<&str> = s.split(',').map(str::trim).collect();
+    if !(2..=3).contains(&parts.len()) {
+        return Err(format!("{s:?}: expected AZ,EL[,DIFFUSE], e.g. 250,25"));
+    }
+    let num =
+        |v: &str, what: &str| v.parse::<f64>().map_err(|_| format!("{s:?}: {v:?} is not a number ({what})"));
+    let sun = trn_landmark::lighting::SunLight {
+        azimuth_deg: num(parts[0], "azimuth, degrees")?,
+        elevation_deg: num(parts[1], "elevation, degrees")?,
+        ambient: parts.get(2).map(|v| num(v, "diffuse share")).transpose()?.unwrap_or(0.25),
+    };
+    if !(sun.azimuth_deg.is_finite() && (-360.0..=360.0).contains(&sun.azimuth_deg)) {
+        return Err(format!("{s:?}: azimuth must be -360..=360 degrees"));
+    }
+    if !(sun.elevation_deg > 0.0 && sun.elevation_deg <= 90.0) {
+        return Err(format!("{s:?}: elevation must be in (0, 90] degrees"));
+    }
+    if !(0.0..=1.0).contains(&sun.ambient) {
+        return Err(format!("{s:?}: the diffuse share must be in 0..=1"));
+    }
+    Ok(sun)
 }
 
 fn vertical(v: Option<VerticalArg>) -> Option<DemVertical> {
@@ -527,6 +569,12 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
     params.min_inliers = a.min_inliers;
     params.max_height_jump_m = a.max_height_jump;
     params.max_landmarks = a.max_landmarks;
+    params.sun = a.sun;
+    anyhow::ensure!(
+        (0.0..=1.0).contains(&a.shading_weight),
+        "invalid option --shading-weight: must be in 0..=1"
+    );
+    params.shading_weight = a.shading_weight;
     params.gyro_arw_deg_sqrt_s = a.gyro_arw / 60.0;
     params.gyro_bias_deg_s = a.gyro_bias / 3600.0;
     let opts = trn_navigator::RunOptions { rate_hz: a.rate, params, matches_dir: a.matches_dir.clone() };

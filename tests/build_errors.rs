@@ -293,6 +293,12 @@ fn bad_output_folder_and_numeric_options() {
         ("--min-shi-tomasi", "-1"),
         ("--search-radius", "0"),
         ("--threads", "0"),
+        ("--sun", "250"),
+        ("--sun", "250,0"),
+        ("--sun", "250,95"),
+        ("--sun", "east,25"),
+        ("--sun", "250,25,1.5"),
+        ("--sun", "400,25"),
     ] {
         let flag = format!("{option}={value}");
         let args = [&base[..], &["--out", s(&out), &flag]].concat();

@@ -122,8 +122,10 @@ fn write_db(path: &Path, n: usize, seed: u64) {
                     shi_tomasi: (next() * 100.0) as f32,
                     contrast_std: 20.0,
                     second_peak_ncc: (next() * 0.9) as f32,
+                    shading_share: next() as f32,
                 },
                 source: 0,
+                lighting: 0,
                 pixels: (0..256).map(|k| (k * 13 + i) as u8).collect(),
             }
         })

@@ -176,8 +176,10 @@ pub fn extract(
             shi_tomasi: cand.shi_tomasi,
             contrast_std: cand.contrast_std,
             second_peak_ncc: cand.second_peak_ncc,
+            shading_share: 0.0,
         },
         source: p.source,
+        lighting: 0,
         pixels,
     };
     let corners = tmp.footprint_corners();

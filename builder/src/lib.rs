@@ -11,6 +11,7 @@
 
 pub mod error;
 pub mod extract;
+pub mod lighting;
 pub mod pyramid;
 pub mod select;
 pub mod sizing;
@@ -30,10 +31,12 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
 use serde::Serialize;
 use tracing::{info, warn};
+use trn_landmark::lighting::SunLight;
 use trn_landmark::{GeoBox, Template};
 
 pub use error::{BuildError, Result};
 use extract::{ExtractParams, Reject, WindowGeo};
+use lighting::SunGrid;
 use pyramid::{LevelFile, OrthoReader, Window};
 use select::{CellStats, Core, LumWindow, SelectParams};
 use sizing::{GsdRange, LevelSpec, Mission};
@@ -93,6 +96,10 @@ pub struct BuildOptions {
     /// view angles.
     pub max_hidden_share: f64,
     pub height_grid_n: u32,
+    /// Suns to bake into the templates (`--sun`): each landmark is stored
+    /// once per sun, rendered under it ([`lighting`]); empty: the ortho as
+    /// imaged.
+    pub suns: Vec<SunLight>,
 }
 
 /// View angle from the vertical up to which a database built without a
@@ -123,6 +130,7 @@ impl BuildOptions {
             max_relief_gsd: None,
             max_hidden_share: 0.5,
             height_grid_n: 9,
+            suns: Vec::new(),
         }
     }
 
@@ -214,6 +222,20 @@ impl BuildOptions {
         if self.dem_vertical == Some(DemVertical::Geoid) && self.geoid.is_none() {
             return bad("--dem-vertical", "geoid needs --geoid GRID");
         }
+        if self.suns.len() > 255 {
+            return bad("--sun", "at most 255 suns");
+        }
+        for s in &self.suns {
+            if !(s.azimuth_deg.is_finite() && (-360.0..=360.0).contains(&s.azimuth_deg)) {
+                return bad("--sun", "azimuth must be -360..=360 degrees clockwise from north");
+            }
+            if !(s.elevation_deg.is_finite() && s.elevation_deg > 0.0 && s.elevation_deg <= 90.0) {
+                return bad("--sun", "elevation must be in (0, 90] degrees above the horizon");
+            }
+            if !(s.ambient.is_finite() && (0.0..=1.0).contains(&s.ambient)) {
+                return bad("--sun", "the diffuse share must be in 0..=1");
+            }
+        }
         if self.out.is_dir() {
             return bad("--out", "is a directory");
         }
@@ -234,6 +256,8 @@ pub struct BuildReport {
     pub mission: Option<Mission>,
     /// View angle from the vertical of the self-occlusion test.
     pub max_view_deg: f64,
+    /// Suns baked into the templates (lighting k is the k-th, from 1).
+    pub suns: Vec<SunLight>,
     /// Candidates that passed texture and uniqueness and were offered to extraction.
     pub candidates: usize,
     /// Extraction rejections by reason, all levels.
@@ -262,6 +286,8 @@ pub struct LevelReport {
     pub empty_cells: BTreeMap<String, usize>,
     /// Extraction rejections by reason (a cell may still have taken its next candidate).
     pub rejected: BTreeMap<String, usize>,
+    /// Mean shading share of the level's landmarks (`TemplateQuality::shading_share`).
+    pub mean_shading_share: f64,
 }
 
 /// Per level of one ortho group: cells, rejections, area.
@@ -271,10 +297,13 @@ struct LevelTally {
     cell_area_m2: f64,
     covered_m2: f64,
     rejected: HashMap<Reject, usize>,
+    /// Sum of the landmarks' shading shares.
+    shading_sum: f64,
 }
 
 impl LevelTally {
-    fn add(&mut self, cells: CellStats, rejected: HashMap<Reject, usize>) {
+    fn add(&mut self, cells: CellStats, rejected: HashMap<Reject, usize>, shading_sum: f64) {
+        self.shading_sum += shading_sum;
         self.covered_m2 += cells.covered as f64 * self.cell_area_m2;
         self.cells += cells;
         for (k, v) in rejected {
@@ -287,6 +316,7 @@ impl LevelTally {
             self.cell_area_m2 = o.cell_area_m2;
         }
         self.covered_m2 += o.covered_m2;
+        self.shading_sum += o.shading_sum;
         self.cells += o.cells;
         for (k, v) in &o.rejected {
             *self.rejected.entry(*k).or_default() += v;
@@ -361,6 +391,7 @@ pub fn build(opts: &BuildOptions, cancel: &AtomicBool) -> Result<BuildReport> {
             reason: format!("{base_gsd} m is finer than half the finest ortho pixel ({finest:.3} m)"),
         });
     }
+    let suns = render_suns(opts, &groups, &dems)?;
     let specs = opts.ladder(base_gsd);
     let range = opts.gsd_range();
     let serves = sizing::served(&specs);
@@ -409,7 +440,7 @@ pub fn build(opts: &BuildOptions, cancel: &AtomicBool) -> Result<BuildReport> {
         }
         Ok(writer.finish()?)
     });
-    let selected = select_all(opts, &groups, &dems, base_gsd, &specs, work.path(), cancel, &tx);
+    let selected = select_all(opts, &groups, &dems, &suns, base_gsd, &specs, work.path(), cancel, &tx);
     drop(tx);
     let tallies = match selected {
         Ok(r) => r,
@@ -454,6 +485,11 @@ pub fn build(opts: &BuildOptions, cancel: &AtomicBool) -> Result<BuildReport> {
                     ("refused".to_string(), t.cells.refused),
                 ]),
                 rejected: level_rejected,
+                mean_shading_share: if t.cells.taken > 0 {
+                    t.shading_sum / t.cells.taken as f64
+                } else {
+                    0.0
+                },
             }
         })
         .collect();
@@ -485,6 +521,7 @@ pub fn build(opts: &BuildOptions, cancel: &AtomicBool) -> Result<BuildReport> {
         serves_gsd_m: serves,
         mission: opts.mission,
         max_view_deg: opts.max_view_deg(),
+        suns: opts.suns.clone(),
         candidates,
         rejected,
         seconds: started.elapsed().as_secs_f64(),
@@ -493,40 +530,114 @@ pub fn build(opts: &BuildOptions, cancel: &AtomicBool) -> Result<BuildReport> {
     Ok(report)
 }
 
-/// Runs the selection over every ortho group, sending templates to the writer:
-/// straight away from one group, after removing duplicates from several.
+/// Runs the selection over every ortho group, streaming templates to the
+/// writer; from the second group on, a template closer to one of an earlier
+/// group's (same level) than [`Dedupe`] allows is a duplicate where mosaics in
+/// different CRSs overlap, and is dropped (the earlier group's is kept).
 #[allow(clippy::too_many_arguments)]
 fn select_all(
     opts: &BuildOptions,
     groups: &[OrthoGroup],
     dems: &[DemSpec],
+    suns: &[SunGrid],
     base_gsd: f64,
     specs: &[LevelSpec],
     work: &Path,
     cancel: &AtomicBool,
     tx: &SyncSender<Vec<Template>>,
 ) -> Result<Vec<LevelTally>> {
-    let stream = groups.len() == 1;
-    let mut all: Vec<Template> = Vec::new();
     let mut tallies = vec![LevelTally::default(); specs.len()];
+    let mut seen = Dedupe::default();
+    let dropped = std::sync::atomic::AtomicUsize::new(0);
     for g in groups {
-        let (t, tally) = build_group(opts, g, dems, base_gsd, specs, work, cancel, stream.then_some(tx))?;
-        all.extend(t);
+        let kept_here: Mutex<Vec<(u8, [f64; 3], f64)>> = Mutex::new(Vec::new());
+        let sink = |mut batch: Vec<Template>| -> Result<()> {
+            if !seen.is_empty() {
+                let before = batch.len();
+                batch.retain(|t| !seen.clashes(t, opts));
+                dropped.fetch_add(before - batch.len(), Ordering::Relaxed);
+            }
+            if groups.len() > 1 {
+                let mut k = kept_here.lock().unwrap_or_else(|e| e.into_inner());
+                k.extend(
+                    batch
+                        .iter()
+                        .map(|t| (t.level, t.center_ecef().0.into(), Dedupe::min_distance_m(t, opts))),
+                );
+            }
+            if batch.is_empty() {
+                return Ok(());
+            }
+            tx.send(batch).map_err(|_| BuildError::WriterStopped)
+        };
+        let tally = build_group(opts, g, dems, suns, base_gsd, specs, work, cancel, &sink)?;
         for (a, b) in tallies.iter_mut().zip(&tally) {
             a.merge(b);
         }
-    }
-    if !stream {
-        let before = all.len();
-        all = dedupe(all, opts);
-        info!("dropped {} duplicate templates where mosaics overlap", before - all.len());
-        all.sort_by(|a, b| a.level.cmp(&b.level).then(a.center.lat_deg.total_cmp(&b.center.lat_deg)));
-        while !all.is_empty() {
-            let rest = all.split_off(all.len().min(2000));
-            tx.send(std::mem::replace(&mut all, rest)).map_err(|_| BuildError::WriterStopped)?;
+        for (level, ecef, min_d) in kept_here.into_inner().unwrap_or_else(|e| e.into_inner()) {
+            seen.insert(level, ecef, min_d);
         }
     }
+    if groups.len() > 1 {
+        info!("dropped {} duplicate templates where mosaics overlap", dropped.load(Ordering::Relaxed));
+    }
     Ok(tallies)
+}
+
+/// Landmarks kept from earlier ortho groups, on a grid per level: where
+/// mosaics in different CRSs overlap, a template closer than half the
+/// smallest default cell (a quarter of a template) or half `--spacing` to one
+/// of them is a duplicate. Positions only (ECEF), so the index stays small
+/// while the templates stream to the writer.
+#[derive(Default)]
+struct Dedupe {
+    /// (level, ECEF cell) -> ECEF centres.
+    grid: HashMap<(u8, i64, i64, i64), Vec<[f64; 3]>>,
+}
+
+impl Dedupe {
+    fn min_distance_m(t: &Template, opts: &BuildOptions) -> f64 {
+        0.5 * opts.spacing(t.width_px, 0.5) as f64 * t.gsd_m
+    }
+
+    fn is_empty(&self) -> bool {
+        self.grid.is_empty()
+    }
+
+    /// Cells are 2^k metres, k per level from the first distance seen, so a
+    /// 3 x 3 x 3 neighbourhood covers the distance looked for.
+    fn key(level: u8, ecef: [f64; 3], cell_m: f64) -> (u8, i64, i64, i64) {
+        let c = |v: f64| (v / cell_m).floor() as i64;
+        (level, c(ecef[0]), c(ecef[1]), c(ecef[2]))
+    }
+
+    fn cell_of(min_d: f64) -> f64 {
+        // A power of two at least min_d: the same for every template of a level.
+        2f64.powi(min_d.max(1e-3).log2().ceil() as i32)
+    }
+
+    fn insert(&mut self, level: u8, ecef: [f64; 3], min_d: f64) {
+        self.grid.entry(Self::key(level, ecef, Self::cell_of(min_d))).or_default().push(ecef);
+    }
+
+    fn clashes(&self, t: &Template, opts: &BuildOptions) -> bool {
+        let min_d = Self::min_distance_m(t, opts);
+        let cell = Self::cell_of(min_d);
+        let p: [f64; 3] = t.center_ecef().0.into();
+        let (l, x, y, z) = Self::key(t.level, p, cell);
+        (-1..=1).any(|dx| {
+            (-1..=1).any(|dy| {
+                (-1..=1).any(|dz| {
+                    self.grid.get(&(l, x + dx, y + dy, z + dz)).is_some_and(|v| {
+                        v.iter().any(|q| {
+                            let d2 = (p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2);
+                            d2 < min_d * min_d
+                        })
+                    })
+                })
+            })
+        })
+    }
 }
 
 fn open_dems(opts: &BuildOptions) -> Result<Vec<DemSpec>> {
@@ -774,12 +885,13 @@ fn build_group(
     opts: &BuildOptions,
     g: &OrthoGroup,
     dems: &[DemSpec],
+    suns: &[SunGrid],
     base_gsd: f64,
     specs: &[LevelSpec],
     work: &Path,
     cancel: &AtomicBool,
-    sink: Option<&SyncSender<Vec<Template>>>,
-) -> Result<(Vec<Template>, Vec<LevelTally>)> {
+    sink: &(dyn Fn(Vec<Template>) -> Result<()> + Sync),
+) -> Result<Vec<LevelTally>> {
     let native = g.info.pixel_dx_m.max(g.info.pixel_dy_m);
     // Pyramid level p whose pixels are at most as coarse as the finest step.
     let offset = ((base_gsd / native).log2() + 1e-9).floor().max(0.0) as usize;
@@ -875,7 +987,6 @@ fn build_group(
     let more = if g.files.len() > 1 { format!(" +{}", g.files.len() - 1) } else { String::new() };
     bar.set_message(format!("building {first}{more}"));
 
-    let mut templates = Vec::new();
     let mut prev: Option<LevelFile> = None;
     // One set of GDAL/PROJ handles per thread: opening them costs milliseconds.
     let workers: Vec<Mutex<Option<Worker>>> =
@@ -894,7 +1005,7 @@ fn build_group(
         };
         let margin = margin_of(p);
         let tiles = tiles_of(p);
-        type TileOut = (Vec<Template>, Vec<(usize, CellStats, HashMap<Reject, usize>)>);
+        type TileOut = Vec<(usize, CellStats, HashMap<Reject, usize>, f64)>;
         let results: Vec<Result<TileOut>> = tiles
             .par_iter()
             .map(|&(x0, x1, y0, y1)| {
@@ -928,7 +1039,7 @@ fn build_group(
                 let mut t = Vec::new();
                 let mut stats = Vec::new();
                 for l in &plans[p] {
-                    let (cells, rejected) = tile_templates(
+                    let (cells, rejected, shading) = tile_templates(
                         &win,
                         margin,
                         (x1 - x0, y1 - y0),
@@ -937,25 +1048,23 @@ fn build_group(
                         worker,
                         &mut scratch,
                         opts,
+                        suns,
                         &mut t,
                     );
-                    stats.push((l.index, cells, rejected));
+                    stats.push((l.index, cells, rejected, shading));
                 }
                 (worker.win, worker.select) = (win, scratch);
-                if let Some(tx) = sink {
-                    if !t.is_empty() {
-                        tx.send(std::mem::take(&mut t)).map_err(|_| BuildError::WriterStopped)?;
-                    }
+                if !t.is_empty() {
+                    sink(t)?;
                 }
                 bar.inc(1);
-                Ok((t, stats))
+                Ok(stats)
             })
             .collect();
         for r in results {
-            let (t, stats) = r?;
-            templates.extend(t);
-            for (i, cells, rejected) in stats {
-                tallies[i].add(cells, rejected);
+            let stats = r?;
+            for (i, cells, rejected, shading) in stats {
+                tallies[i].add(cells, rejected, shading);
             }
         }
         for l in &plans[p] {
@@ -972,7 +1081,7 @@ fn build_group(
         prev = next;
     }
     bar.finish_and_clear();
-    Ok((templates, tallies))
+    Ok(tallies)
 }
 
 /// Pixels a tile's window reaches past its core on each side.
@@ -980,8 +1089,10 @@ fn level_margin(l: LevelPlan) -> usize {
     (l.select.win_w.max(l.select.win_h) as f64 * 0.75).ceil() as usize + l.select.search_radius + 4
 }
 
-/// Selects and cuts one level's templates on one tile (appended to `out`);
-/// a cell whose best candidate is refused at extraction takes the next.
+/// Selects and cuts one level's templates on one tile (appended to `out`,
+/// once per sun of `suns` when there are any); a cell whose best candidate is
+/// refused at extraction takes the next. Also returns the sum of the
+/// landmarks' shading shares.
 #[allow(clippy::too_many_arguments)]
 fn tile_templates(
     win: &Window,
@@ -992,8 +1103,11 @@ fn tile_templates(
     worker: &Worker,
     scratch: &mut select::Scratch,
     opts: &BuildOptions,
+    suns: &[SunGrid],
     out: &mut Vec<Template>,
-) -> (CellStats, HashMap<Reject, usize>) {
+) -> (CellStats, HashMap<Reject, usize>, f64) {
+    let share_suns: &[SunLight] = if opts.suns.is_empty() { &lighting::SHARE_SUNS } else { &opts.suns };
+    let mut shading_sum = 0.0;
     let img = LumWindow { width: win.width, height: win.height, lum: &win.lum, valid: &win.valid };
     let core = Core { x0: margin, x1: margin + core_size.0, y0: margin, y1: margin + core_size.1 };
     let scale = 2f64.powi(plan.pyramid_level as i32);
@@ -1042,8 +1156,20 @@ fn tile_templates(
             None => extract::extract(win, &geo, &worker.dem, c, &ep),
         };
         match got {
-            Ok(t) => {
-                out.push(t);
+            Ok(mut t) => {
+                let n = t.pixels.len().max(1) as f64;
+                let mean = t.pixels.iter().map(|&v| v as f64).sum::<f64>() / n;
+                let std = (t.pixels.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>() / n).sqrt();
+                t.quality.shading_share =
+                    lighting::shading_share(&t.terrain.height_grid, mean, std, share_suns);
+                shading_sum += t.quality.shading_share as f64;
+                if suns.is_empty() {
+                    out.push(t);
+                } else {
+                    for (k, sun) in suns.iter().enumerate() {
+                        out.push(Template { pixels: sun.relight(&t), lighting: k as u8 + 1, ..t.clone() });
+                    }
+                }
                 true
             }
             Err(r) => {
@@ -1053,39 +1179,36 @@ fn tile_templates(
         }
     };
     let cells = select::select_with(&img, &plan.select, core, scratch, &mut accept);
-    (cells, rejected)
+    (cells, rejected, shading_sum)
 }
 
-/// Where mosaics in different CRSs overlap, keeps the most distinctive of
-/// templates of one level from different mosaics closer than half the
-/// smallest default cell (a quarter of a template) or half `--spacing`.
-fn dedupe(mut all: Vec<Template>, opts: &BuildOptions) -> Vec<Template> {
-    all.sort_by(|a, b| a.quality.second_peak_ncc.total_cmp(&b.quality.second_peak_ncc));
-    let mut kept: Vec<Template> = Vec::new();
-    let mut grid: HashMap<(u8, i64, i64), Vec<usize>> = HashMap::new();
-    for t in all {
-        let min_d = 0.5 * opts.spacing(t.width_px, 0.5) as f64 * t.gsd_m;
-        let (m_lat, m_lon) = trn_geodesy::metres_per_degree(t.center.lat_deg);
-        let cell = |v: f64, m: f64| (v * m / min_d).floor() as i64;
-        let (cy, cx) = (cell(t.center.lat_deg, m_lat), cell(t.center.lon_deg, m_lon));
-        let ecef = t.center_ecef();
-        let clash = (-1..=1).any(|dy| {
-            (-1..=1).any(|dx| {
-                grid.get(&(t.level, cy + dy, cx + dx)).is_some_and(|v| {
-                    // Only another mosaic's landmark is a duplicate: one mosaic's own
-                    // cells already keep its landmarks apart.
-                    v.iter().any(|&i| {
-                        kept[i].source != t.source && kept[i].center_ecef().distance_m(&ecef) < min_d
-                    })
-                })
-            })
-        });
-        if !clash {
-            grid.entry((t.level, cy, cx)).or_default().push(kept.len());
-            kept.push(t);
-        }
+/// The lighting grids of `opts.suns` over the orthos, at the finest DEM's
+/// spacing (none without suns).
+fn render_suns(opts: &BuildOptions, groups: &[OrthoGroup], dems: &[DemSpec]) -> Result<Vec<SunGrid>> {
+    if opts.suns.is_empty() {
+        return Ok(Vec::new());
     }
-    kept
+    let started = Instant::now();
+    let bbox = groups.iter().skip(1).fold(groups[0].info.extent, |b, g| {
+        let e = &g.info.extent;
+        GeoBox::new(
+            b.min_lon_deg.min(e.min_lon_deg),
+            b.min_lat_deg.min(e.min_lat_deg),
+            b.max_lon_deg.max(e.max_lon_deg),
+            b.max_lat_deg.max(e.max_lat_deg),
+        )
+    });
+    let spacing_m = dems.iter().map(|d| d.info.pixel_dx_m.min(d.info.pixel_dy_m)).fold(f64::MAX, f64::min);
+    let sampler = DemSampler::open(dems)?;
+    let grids = SunGrid::render(&sampler, &bbox, spacing_m, &opts.suns);
+    let (rows, cols) = grids[0].shape();
+    info!(
+        "lighting of {} sun(s) on {rows} x {cols} DEM nodes ({:.0} m apart) in {:.2} s",
+        grids.len(),
+        spacing_m,
+        started.elapsed().as_secs_f64()
+    );
+    Ok(grids)
 }
 
 fn metadata(
@@ -1137,6 +1260,7 @@ fn metadata(
         ("base_gsd_m".into(), json!(base_gsd)),
         ("sized_for_gsd_m".into(), json!(opts.gsd_range())),
         ("max_view_deg".into(), json!(opts.max_view_deg())),
+        ("suns".into(), json!(opts.suns)),
         ("levels".into(), json!(level_list)),
         ("created_unix".into(), json!(created)),
         ("trn_version".into(), json!(env!("CARGO_PKG_VERSION"))),

@@ -66,6 +66,11 @@ pub struct DemSpec {
 pub trait Heights {
     /// Ellipsoidal heights (m) at (lon, lat) points; `None` when some point has no DEM.
     fn heights_ellipsoidal(&self, lonlat: &[(f64, f64)]) -> Option<Vec<f64>>;
+
+    /// Ellipsoidal heights (m) at (lon, lat) points, NaN where there is no DEM.
+    fn heights_or_nan(&self, lonlat: &[(f64, f64)]) -> Vec<f64> {
+        lonlat.iter().map(|p| self.heights_ellipsoidal(&[*p]).map_or(f64::NAN, |h| h[0])).collect()
+    }
 }
 
 impl Heights for DemSampler {
@@ -75,12 +80,47 @@ impl Heights for DemSampler {
     fn heights_ellipsoidal(&self, lonlat: &[(f64, f64)]) -> Option<Vec<f64>> {
         self.heights_each(lonlat).into_iter().collect()
     }
+
+    fn heights_or_nan(&self, lonlat: &[(f64, f64)]) -> Vec<f64> {
+        self.heights_each(lonlat).into_iter().map(|h| h.unwrap_or(f64::NAN)).collect()
+    }
 }
 
 impl Heights for DemPatch<'_> {
     /// Points outside the patch's box have no height here.
     fn heights_ellipsoidal(&self, lonlat: &[(f64, f64)]) -> Option<Vec<f64>> {
         lonlat.iter().map(|&(lon, lat)| self.parts.iter().find_map(|p| p.height(lon, lat))).collect()
+    }
+}
+
+/// Ellipsoidal heights (m, NaN where no DEM covers) at the nodes of a
+/// latitude/longitude grid: node `(row, col)` at `north - row * dlat`,
+/// `west + col * dlon`; sampled 64 rows at a time (one DEM read and one batch
+/// of coordinate transforms each, in bounded memory).
+pub fn latlon_heights(
+    dem: &impl Heights,
+    north: f64,
+    west: f64,
+    dlat: f64,
+    dlon: f64,
+    rows: usize,
+    cols: usize,
+) -> trn_landmark::grid::LatLonGrid<f32> {
+    let mut values: Vec<f32> = Vec::with_capacity(rows * cols);
+    for r0 in (0..rows).step_by(64) {
+        let points: Vec<(f64, f64)> = (r0..(r0 + 64).min(rows))
+            .flat_map(|r| (0..cols).map(move |c| (west + c as f64 * dlon, north - r as f64 * dlat)))
+            .collect();
+        values.extend(dem.heights_or_nan(&points).into_iter().map(|h| h as f32));
+    }
+    trn_landmark::grid::LatLonGrid {
+        north_lat_deg: north,
+        west_lon_deg: west,
+        dlat_deg: dlat,
+        dlon_deg: dlon,
+        rows,
+        cols,
+        values,
     }
 }
 

@@ -5,6 +5,8 @@
 //! the terrain geometry (a plane fit and a coarse height grid) the navigator needs
 //! to predict it into a camera image. Pure data, no I/O.
 
+pub mod grid;
+pub mod lighting;
 pub mod wire;
 
 use nalgebra::Vector3;
@@ -207,6 +209,12 @@ pub struct TemplateQuality {
     /// Highest normalised cross-correlation of the template against its own
     /// surroundings away from the true position (lower is more distinctive).
     pub second_peak_ncc: f32,
+    /// How much of the template's contrast relief shading could make: the
+    /// spread of its terrain's brightness factor over a set of suns (the
+    /// build's `--sun`s, else four azimuths at 35°) times its mean grey
+    /// level, over `contrast_std`, at most 1. Near 0 the texture is albedo
+    /// (stable under any sun); near 1 it may be mostly shading and shadow.
+    pub shading_share: f32,
 }
 
 /// One landmark: a north-up image template on the local tangent plane.
@@ -231,6 +239,10 @@ pub struct Template {
     pub quality: TemplateQuality,
     /// Index into the build's list of ortho sources.
     pub source: u32,
+    /// Lighting of the pixels: 0 the ortho as imaged, k >= 1 rendered under
+    /// the build's k-th `--sun` (database metadata `suns`). A database built
+    /// with several suns holds each landmark once per sun.
+    pub lighting: u8,
     /// Grey levels, row-major, row 0 north.
     pub pixels: Vec<u8>,
 }

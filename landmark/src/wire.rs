@@ -10,12 +10,12 @@
 //!          version u32 = 1
 //!          flags   u32                bit 0: the list was truncated by a limit
 //!          count   u32                number of records that follow
-//! record   id i64, level u8, width_px u32, height_px u32, source u32, gsd_m f64,
+//! record   id i64, level u8, lighting u8, width_px u32, height_px u32, source u32, gsd_m f64,
 //!          lat_deg f64, lon_deg f64, h_m f64 (WGS84 ellipsoidal),
 //!          footprint min_lon_deg, min_lat_deg, max_lon_deg, max_lat_deg (4 x f64),
 //!          plane_normal_enu (3 x f64), plane_residual_rms_m f64,
 //!          height_grid n u32, spacing_m f64, heights_m (n*n x f32, row 0 north),
-//!          shi_tomasi f32, contrast_std f32, second_peak_ncc f32,
+//!          shi_tomasi f32, contrast_std f32, second_peak_ncc f32, shading_share f32,
 //!          pixels (width_px*height_px x u8, row-major, row 0 north)
 //! ```
 
@@ -28,7 +28,7 @@ use crate::{GeoBox, HeightGrid, Template, TemplateQuality, TerrainPatch};
 /// Media type of the encoding (HTTP `Accept` / `Content-Type`).
 pub const MEDIA_TYPE: &str = "application/vnd.trn.templates";
 pub const MAGIC: [u8; 4] = *b"TRNT";
-pub const VERSION: u32 = 1;
+pub const VERSION: u32 = 2;
 /// Largest template side and height grid side a decoder accepts: anything larger is
 /// a corrupt stream, not a template, and must not make it allocate gigabytes.
 pub const MAX_SIDE: u32 = 4096;
@@ -55,7 +55,7 @@ impl fmt::Display for WireError {
 impl std::error::Error for WireError {}
 
 /// Bytes of a record without height grid and pixels.
-pub const MIN_RECORD_LEN: usize = 8 + 1 + 4 * 3 + 8 * 12 + 4 + 8 + 4 * 3;
+pub const MIN_RECORD_LEN: usize = 8 + 2 + 4 * 3 + 8 * 12 + 4 + 8 + 4 * 4;
 
 /// Bytes one template takes.
 pub fn encoded_len(t: &Template) -> usize {
@@ -89,6 +89,7 @@ pub fn write_header(out: &mut Vec<u8>, count: u32, truncated: bool) {
 pub fn encode_record(t: &Template, out: &mut Vec<u8>) {
     out.extend_from_slice(&t.id.to_le_bytes());
     out.push(t.level);
+    out.push(t.lighting);
     for v in [t.width_px, t.height_px, t.source] {
         out.extend_from_slice(&v.to_le_bytes());
     }
@@ -116,7 +117,7 @@ pub fn encode_record(t: &Template, out: &mut Vec<u8>) {
         out.extend_from_slice(&h.to_le_bytes());
     }
     let q = &t.quality;
-    for v in [q.shi_tomasi, q.contrast_std, q.second_peak_ncc] {
+    for v in [q.shi_tomasi, q.contrast_std, q.second_peak_ncc, q.shading_share] {
         out.extend_from_slice(&v.to_le_bytes());
     }
     out.extend_from_slice(&t.pixels);
@@ -198,6 +199,7 @@ pub fn decode_record(bytes: &[u8]) -> Result<Template, WireError> {
 fn decode_one(r: &mut Reader) -> Result<Template, WireError> {
     let id = i64::from_le_bytes(r.array("id")?);
     let level = r.take(1, "level")?[0];
+    let lighting = r.take(1, "lighting")?[0];
     let width_px = r.u32("width_px")?;
     let height_px = r.u32("height_px")?;
     if width_px > MAX_SIDE || height_px > MAX_SIDE {
@@ -221,6 +223,7 @@ fn decode_one(r: &mut Reader) -> Result<Template, WireError> {
         shi_tomasi: r.f32("shi_tomasi")?,
         contrast_std: r.f32("contrast_std")?,
         second_peak_ncc: r.f32("second_peak_ncc")?,
+        shading_share: r.f32("shading_share")?,
     };
     let pixels = r.take(width_px as usize * height_px as usize, "pixels")?.to_vec();
     Ok(Template {
@@ -238,6 +241,7 @@ fn decode_one(r: &mut Reader) -> Result<Template, WireError> {
         },
         quality,
         source,
+        lighting,
         pixels,
     })
 }
@@ -264,8 +268,14 @@ mod tests {
                     heights_m: (0..n * n).map(|i| i as f32 * 0.37 - 2.0).collect(),
                 },
             },
-            quality: TemplateQuality { shi_tomasi: 12.5, contrast_std: 30.25, second_peak_ncc: 0.61 },
+            quality: TemplateQuality {
+                shi_tomasi: 12.5,
+                contrast_std: 30.25,
+                second_peak_ncc: 0.61,
+                shading_share: 0.375,
+            },
             source: 2,
+            lighting: 3,
             pixels: (0..side * (side + 1)).map(|i| (i * 7 % 256) as u8).collect(),
         }
     }

@@ -26,6 +26,7 @@ pub struct HttpSource {
     agent: ureq::Agent,
     base: String,
     levels: Vec<LevelInfo>,
+    suns: Vec<trn_landmark::lighting::SunLight>,
     /// The last answer's bytes: the buffer is kept for the next.
     body: std::sync::Mutex<Vec<u8>>,
 }
@@ -33,6 +34,8 @@ pub struct HttpSource {
 #[derive(Deserialize)]
 struct InfoJson {
     levels: Vec<LevelJson>,
+    #[serde(default)]
+    metadata: serde_json::Value,
 }
 
 #[derive(Deserialize)]
@@ -66,10 +69,12 @@ impl HttpSource {
             ureq::unversioned::transport::DefaultConnector::new(),
             OnceResolver::new(&base)?,
         );
-        let mut me = Self { agent, base, levels: Vec::new(), body: Default::default() };
+        let mut me = Self { agent, base, levels: Vec::new(), suns: Vec::new(), body: Default::default() };
         let (body, _) = me.get("/v1/info", "application/json")?;
         let info: InfoJson = serde_json::from_slice(&body)
             .map_err(|e| SourceError(format!("{}/v1/info: not the expected JSON: {e}", me.base)))?;
+        me.suns =
+            crate::source::suns_of_metadata(info.metadata.get("suns"), &format!("{}/v1/info", me.base))?;
         me.levels = info
             .levels
             .into_iter()
@@ -212,6 +217,10 @@ pub fn read_body_into(body: &mut ureq::Body, limit: u64, buf: &mut Vec<u8>) -> R
 impl LandmarkSource for HttpSource {
     fn levels(&self) -> Result<Vec<LevelInfo>, SourceError> {
         Ok(self.levels.clone())
+    }
+
+    fn suns(&self) -> Result<Vec<trn_landmark::lighting::SunLight>, SourceError> {
+        Ok(self.suns.clone())
     }
 
     fn query(&self, bbox: &GeoBox, level: u8) -> Result<Vec<Template>, SourceError> {

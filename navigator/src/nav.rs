@@ -7,6 +7,7 @@ use nalgebra::{Matrix3, Matrix6, UnitQuaternion, Vector3};
 use tracing::debug;
 use trn_camera::{CameraConfig, CameraModel, CameraPose, Pixel};
 use trn_flight::{FixStatus, ImuSample, MatchRecord, NavRecord, PoseCovariance, TimedPose};
+use trn_landmark::lighting::SunLight;
 use trn_landmark::Template;
 use trn_vision::ncc::{self, ImageView, NccParams};
 use trn_vision::pnp::{refine_pose, rotation_vector, AttitudePrior, RefineOptions};
@@ -54,6 +55,13 @@ pub struct NavParams {
     pub gyro_bias_walk_deg_s_sqrt_s: f64,
     /// Velocity uncertainty between fixes (m/s).
     pub velocity_sigma_m_s: f64,
+    /// The sun during the flight: picks the database's lighting (its baked
+    /// sun nearest to it) when it has several.
+    pub sun: Option<SunLight>,
+    /// Weight of a template's shading share in the choice of landmarks when
+    /// the lighting used is not baked for the flight's sun: the score is
+    /// multiplied by `1 - weight * shading_share`.
+    pub shading_weight: f64,
 }
 
 impl Default for NavParams {
@@ -77,6 +85,8 @@ impl Default for NavParams {
             gyro_arw_deg_sqrt_s: 0.3 / 60.0,
             gyro_bias_walk_deg_s_sqrt_s: 0.01 / 3600.0,
             velocity_sigma_m_s: 20.0,
+            sun: None,
+            shading_weight: 0.5,
         }
     }
 }
@@ -101,6 +111,10 @@ pub struct Navigator<'a> {
     lut: UndistortLut,
     /// The database's levels.
     levels: Vec<DbLevel>,
+    /// The templates' lighting used (`Template::lighting`), and whether it
+    /// was baked for the flight's sun.
+    lighting: u8,
+    lit_for_flight: bool,
     /// Per level: the last (enlarged) query box and its templates; the
     /// footprint moves little between frames.
     cache: std::cell::RefCell<std::collections::HashMap<u8, (trn_landmark::GeoBox, Vec<Template>)>>,
@@ -163,6 +177,7 @@ impl<'a> Navigator<'a> {
         }
         let near = crate::view::terrain_near(source, &levels, &init.position)?;
         let terrain_h_m = near.height_m;
+        let (lighting, lit_for_flight) = choose_lighting(&source.suns()?, params.sun.as_ref());
         Ok(Self {
             source,
             camera: camera.model,
@@ -170,6 +185,8 @@ impl<'a> Navigator<'a> {
             imu,
             lut: UndistortLut::new(&camera.model, PYRAMID_LEVELS),
             levels,
+            lighting,
+            lit_for_flight,
             cache: Default::default(),
             t: init.t,
             pose: CameraPose::new(init.position.to_ecef(), init.q_ecef_cam),
@@ -346,7 +363,8 @@ impl<'a> Navigator<'a> {
                     (bbox.max_lat_deg + dh).min(90.0),
                 )
             };
-            let ts = self.source.query(&big, level)?;
+            let mut ts = self.source.query(&big, level)?;
+            ts.retain(|t| t.lighting == self.lighting);
             cache.insert(level, (big, ts));
         }
         let (_, ts) = &cache[&level];
@@ -466,7 +484,7 @@ impl<'a> Navigator<'a> {
         templates.retain(|t| {
             crate::view::level_fits(&self.levels, t, crate::view::local_gsd_m(&self.camera, pose, t) * scale)
         });
-        let chosen = self.spread(&templates, pose);
+        let chosen = self.spread(&templates, pose, scale);
         let img = &pyr.levels[level];
         let view = ImageView::new(img.width, img.height, &img.data);
         let predicted: Vec<Predicted> = chosen
@@ -588,8 +606,15 @@ impl<'a> Navigator<'a> {
             .count()
     }
 
-    /// Landmarks in view, spread over image cells, best first, capped.
-    fn spread<'t>(&self, templates: &'t [Template], pose: &CameraPose) -> Vec<&'t Template> {
+    /// Landmarks in view, spread over image cells, best first, capped. A
+    /// template's score is its texture (√Shi–Tomasi), its uniqueness, the
+    /// image area it covers up to [`crate::view::TARGET_PATCH_PX`]² (a
+    /// correlation's precision grows with the pixels it sums: a cell takes
+    /// the level that fits the resolution before the one finer, whose
+    /// templates are four times as many but half as wide) and, unless the
+    /// database was lit for the flight's sun, its stability under another
+    /// sun (`1 - shading_weight * shading_share`).
+    fn spread<'t>(&self, templates: &'t [Template], pose: &CameraPose, scale: f64) -> Vec<&'t Template> {
         let (gx, gy) = self.params.grid;
         let (w, h) = (self.camera.width as f64, self.camera.height as f64);
         let mut cells: Vec<Vec<(f32, &Template)>> = vec![Vec::new(); gx * gy];
@@ -600,7 +625,15 @@ impl<'a> Navigator<'a> {
             }
             let (cx, cy) = (((p.u / w) * gx as f64) as usize, ((p.v / h) * gy as f64) as usize);
             let q = &t.quality;
-            let score = q.shi_tomasi.sqrt() * (1.0 - q.second_peak_ncc).max(0.01);
+            let span_px =
+                t.width_px as f64 * t.gsd_m / (crate::view::local_gsd_m(&self.camera, pose, t) * scale);
+            let area = (span_px / crate::view::TARGET_PATCH_PX).min(1.0).powi(2) as f32;
+            let stable = if self.lit_for_flight {
+                1.0
+            } else {
+                1.0 - self.params.shading_weight as f32 * q.shading_share.clamp(0.0, 1.0)
+            };
+            let score = q.shi_tomasi.sqrt() * (1.0 - q.second_peak_ncc).max(0.01) * area * stable;
             cells[cy.min(gy - 1) * gx + cx.min(gx - 1)].push((score, t));
         }
         for c in &mut cells {
@@ -627,6 +660,40 @@ impl<'a> Navigator<'a> {
         }
         out
     }
+}
+
+/// Sun directions closer than this (deg) count as the same lighting.
+pub const SAME_SUN_DEG: f64 = 10.0;
+
+/// The lighting (`Template::lighting`) to use from a database baked for
+/// `suns` (empty: the ortho as imaged, 0) on a flight under `sun`: the
+/// nearest baked sun, or the first without one; and whether it is the
+/// flight's (within [`SAME_SUN_DEG`]).
+pub fn choose_lighting(suns: &[SunLight], sun: Option<&SunLight>) -> (u8, bool) {
+    if suns.is_empty() {
+        return (0, false);
+    }
+    let Some(sun) = sun else {
+        tracing::info!(
+            "the database is lit for {} sun(s) and no --sun was given: using its first",
+            suns.len()
+        );
+        return (1, false);
+    };
+    let (k, angle) = suns
+        .iter()
+        .enumerate()
+        .map(|(k, s)| (k, s.angle_to_deg(sun)))
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .expect("suns");
+    if angle > SAME_SUN_DEG {
+        tracing::warn!(
+            "the database's nearest sun is {angle:.1} deg from the flight's: its shading will differ"
+        );
+    } else {
+        tracing::info!("using the database's lighting {} ({angle:.1} deg from the flight's sun)", k + 1);
+    }
+    ((k + 1).min(255) as u8, angle <= SAME_SUN_DEG)
 }
 
 /// A pose from one frame before acceptance.
@@ -678,6 +745,23 @@ fn velocity_fit(fixes: &std::collections::VecDeque<(f64, Vector3<f64>)>) -> Opti
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn lighting_is_the_nearest_baked_sun() {
+        let sun = |azimuth_deg, elevation_deg| SunLight { azimuth_deg, elevation_deg, ambient: 0.25 };
+        let baked = [sun(250.0, 25.0), sun(240.0, 12.0), sun(90.0, 40.0)];
+        // As imaged: lighting 0, whatever the flight's sun.
+        assert_eq!(choose_lighting(&[], Some(&sun(250.0, 25.0))), (0, false));
+        assert_eq!(choose_lighting(&[], None), (0, false));
+        // No sun given: the first, not known to be the flight's.
+        assert_eq!(choose_lighting(&baked, None), (1, false));
+        assert_eq!(choose_lighting(&baked, Some(&sun(252.0, 24.0))), (1, true));
+        assert_eq!(choose_lighting(&baked, Some(&sun(238.0, 10.0))), (2, true));
+        // -270 is 90: the same direction.
+        assert_eq!(choose_lighting(&baked, Some(&sun(-270.0, 41.0))), (3, true));
+        // The nearest is too far to count as the flight's.
+        assert_eq!(choose_lighting(&baked, Some(&sun(180.0, 60.0))), (3, false));
+    }
 
     #[test]
     fn velocity_is_the_least_squares_slope_of_the_fixes() {

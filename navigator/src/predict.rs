@@ -301,8 +301,14 @@ mod tests {
                 plane_residual_rms_m: rms,
                 height_grid: HeightGrid { n, spacing_m: spacing, heights_m },
             },
-            quality: TemplateQuality { shi_tomasi: 10.0, contrast_std: 30.0, second_peak_ncc: 0.2 },
+            quality: TemplateQuality {
+                shi_tomasi: 10.0,
+                contrast_std: 30.0,
+                second_peak_ncc: 0.2,
+                shading_share: 0.0,
+            },
             source: 0,
+            lighting: 0,
             pixels,
         }
     }

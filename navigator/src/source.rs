@@ -3,6 +3,7 @@
 
 use std::path::Path;
 
+use trn_landmark::lighting::SunLight;
 use trn_landmark::{GeoBox, Template};
 use trn_store::{BboxQuery, LandmarkDb, LevelInfo};
 
@@ -16,6 +17,20 @@ pub trait LandmarkSource {
     fn levels(&self) -> Result<Vec<LevelInfo>, SourceError>;
     /// Templates of one level whose footprint meets `bbox`.
     fn query(&self, bbox: &GeoBox, level: u8) -> Result<Vec<Template>, SourceError>;
+    /// Suns the database's templates are lit for (`Template::lighting` k is
+    /// the k-th, from 1); empty: the ortho as imaged.
+    fn suns(&self) -> Result<Vec<SunLight>, SourceError> {
+        Ok(Vec::new())
+    }
+}
+
+/// The `suns` entry of a database's build metadata (none: empty).
+pub fn suns_of_metadata(value: Option<&serde_json::Value>, at: &str) -> Result<Vec<SunLight>, SourceError> {
+    match value {
+        None | Some(serde_json::Value::Null) => Ok(Vec::new()),
+        Some(v) => serde_json::from_value(v.clone())
+            .map_err(|e| SourceError(format!("{at}: metadata \"suns\" is not a list of suns: {e}"))),
+    }
 }
 
 /// A landmark database used directly: also one borrowed connection (the
@@ -28,6 +43,11 @@ impl LandmarkSource for LandmarkDb {
     fn query(&self, bbox: &GeoBox, level: u8) -> Result<Vec<Template>, SourceError> {
         self.query_bbox(&BboxQuery::new(*bbox).with_levels(level..=level))
             .map_err(|e| SourceError(e.to_string()))
+    }
+
+    fn suns(&self) -> Result<Vec<SunLight>, SourceError> {
+        let m = self.metadata("suns").map_err(|e| SourceError(e.to_string()))?;
+        suns_of_metadata(m.as_ref(), &self.path().display().to_string())
     }
 }
 
@@ -49,5 +69,9 @@ impl LandmarkSource for DbSource {
 
     fn query(&self, bbox: &GeoBox, level: u8) -> Result<Vec<Template>, SourceError> {
         LandmarkSource::query(&self.db, bbox, level)
+    }
+
+    fn suns(&self) -> Result<Vec<SunLight>, SourceError> {
+        LandmarkSource::suns(&self.db)
     }
 }

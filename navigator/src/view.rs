@@ -149,9 +149,15 @@ pub fn landmarks_in_view(
     let lo = center_level.saturating_sub(LEVEL_SPAN);
     let hi = center_level.saturating_add(LEVEL_SPAN);
     let (w, h) = (camera.width as f64, camera.height as f64);
+    // A database lit for several suns holds each landmark once per sun: count
+    // each once (its first lighting).
+    let first_lighting = (!source.suns()?.is_empty()).then_some(1u8);
     let mut templates = Vec::new();
     for l in levels.iter().map(|l| l.level).filter(|&l| l >= lo && l <= hi) {
         for t in source.query(&fp.bbox, l)? {
+            if first_lighting.is_some_and(|k| t.lighting != k) {
+                continue;
+            }
             if !level_fits(levels, &t, local_gsd_m(camera, pose, &t)) {
                 continue;
             }

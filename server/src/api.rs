@@ -45,6 +45,10 @@ pub struct TemplateSummary {
     pub shi_tomasi: f32,
     pub contrast_std: f32,
     pub second_peak_ncc: f32,
+    /// Share of the contrast relief shading could make (0 albedo .. 1 shading).
+    pub shading_share: f32,
+    /// 0: the ortho as imaged; k: rendered under the k-th of the database's `suns`.
+    pub lighting: u8,
 }
 
 impl From<&Template> for TemplateSummary {
@@ -64,6 +68,8 @@ impl From<&Template> for TemplateSummary {
             shi_tomasi: t.quality.shi_tomasi,
             contrast_std: t.quality.contrast_std,
             second_peak_ncc: t.quality.second_peak_ncc,
+            shading_share: t.quality.shading_share,
+            lighting: t.lighting,
         }
     }
 }

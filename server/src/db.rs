@@ -206,6 +206,10 @@ impl LandmarkSource for Store<'_> {
         self.query_bbox(&BboxQuery::new(*bbox).with_levels(level..=level))
             .map_err(|e| SourceError(e.to_string()))
     }
+
+    fn suns(&self) -> Result<Vec<trn_landmark::lighting::SunLight>, SourceError> {
+        LandmarkSource::suns(self.conn)
+    }
 }
 
 /// A connection taken from the pool, put back when dropped (also on a panic).

@@ -65,8 +65,10 @@ fn template(rng: &mut Lcg, level: u8, lat: f64, lon: f64) -> Template {
             shi_tomasi: rng.uniform(0.0, 500.0) as f32,
             contrast_std: rng.uniform(5.0, 60.0) as f32,
             second_peak_ncc: rng.below(8) as f32 / 10.0,
+            shading_share: rng.below(5) as f32 / 4.0,
         },
         source: 0,
+        lighting: rng.below(3) as u8,
         pixels: (0..side * side).map(|_| rng.below(256) as u8).collect(),
     }
 }

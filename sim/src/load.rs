@@ -154,21 +154,7 @@ fn load_terrain(src: &SceneSources, ortho: &source::RasterInfo) -> Result<Terrai
     let rows = ((span_lat + 2.0 * margin_lat) / dlat).ceil() as usize + 1;
     let cols = ((span_lon + 2.0 * margin_lon) / dlon).ceil() as usize + 1;
     let (north, west) = (e.max_lat_deg + margin_lat, e.min_lon_deg - margin_lon);
-    let mut values = Vec::with_capacity(rows * cols);
-    for r in 0..rows {
-        let lat = north - r as f64 * dlat;
-        let pts: Vec<(f64, f64)> = (0..cols).map(|c| (west + c as f64 * dlon, lat)).collect();
-        values.extend(sampler.heights_each(&pts).into_iter().map(|h| h.map_or(f32::NAN, |v| v as f32)));
-    }
-    let heights = LatLonGrid {
-        north_lat_deg: north,
-        west_lon_deg: west,
-        dlat_deg: dlat,
-        dlon_deg: dlon,
-        rows,
-        cols,
-        values,
-    };
+    let heights = trn_builder::terrain::latlon_heights(&sampler, north, west, dlat, dlon, rows, cols);
     Terrain::new(heights).ok_or_else(|| SimError::Input {
         path: src.dems[0].clone(),
         reason: format!("the DEM does not cover the ortho ({})", src.ortho.display()),

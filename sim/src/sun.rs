@@ -1,33 +1,13 @@
 //! Re-lighting of the terrain under a [`Sun`] other than the ortho's: an
 //! illumination factor on every node of the terrain grid, computed once per
-//! flight, that the renderer multiplies into each terrain pixel (bilinear at
-//! the pixel's hit point).
-//!
-//! - Shading: Lambertian, from the terrain normal by central differences of
-//!   the heights in metres (a longitude step spans `cos(lat)` of a latitude
-//!   step's arc, taken per row).
-//! - Cast shadows: one sweep of the grid along the sun's azimuth with the
-//!   shadow-height recurrence `S(p) = max(h(p), S(p + step u) - step tan E)`
-//!   (`u` the horizontal direction to the sun, `S` linear between the two
-//!   nodes of the upwind line); lines are processed from the sun's side, so
-//!   the upwind line is always done. A node is in shadow where the shadow
-//!   surface passes above it; the edge is a linear ramp centred on the
-//!   geometric edge and one sweep step wide (sub-cell, so the bilinear factor
-//!   places the penumbra's middle where the shadow ends).
-//!
-//! The sun has the same azimuth and elevation at every node (a scene tens of
-//! kilometres wide spans a few tenths of a degree of the Earth's curvature)
-//! and the sweep runs over heights above the ellipsoid without the curvature
-//! drop (`L^2 / 2R`: 0.3 m over a 2 km shadow).
+//! flight (`trn_landmark::lighting`: Lambertian shading and cast shadows, the
+//! model `trn build --sun` bakes into templates), that the renderer
+//! multiplies into each terrain pixel (bilinear at the pixel's hit point).
 
-use rayon::prelude::*;
-use trn_geodesy::metres_per_degree;
+use trn_landmark::lighting::{illumination, SunLight};
 
 pub use crate::effects::Sun;
 use crate::scene::{LatLonGrid, Terrain};
-
-/// Depth of the shadow surface under which an upwind point counts as shaded (m).
-const SHADOW_EPS_M: f64 = 1e-3;
 
 /// The illumination factor on the terrain grid's nodes (1 where there is no DEM).
 #[derive(Clone, Debug)]
@@ -40,52 +20,9 @@ impl Illumination {
     /// in (0, 90], ambient in [0, 1]).
     pub fn new(terrain: &Terrain, sun: &Sun) -> Self {
         let g = &terrain.heights;
-        let (rows, cols) = (g.rows, g.cols);
-        let (az, el) = (sun.azimuth_deg.to_radians(), sun.elevation_deg.to_radians());
-        let (ue, un) = (az.sin(), az.cos());
-        let (sin_e, cos_e) = el.sin_cos();
-        // A sun at the zenith casts no shadow; the cap keeps the ramp finite.
-        let tan_e = el.tan().min(1e4);
-        // Node spacing (m) along each row's latitude.
-        let (dx, dy): (Vec<f64>, Vec<f64>) = (0..rows)
-            .map(|r| {
-                let (m_lat, m_lon) = metres_per_degree(g.north_lat_deg - r as f64 * g.dlat_deg);
-                (g.dlon_deg * m_lon, g.dlat_deg * m_lat)
-            })
-            .unzip();
-        let mut lit = shadow_sweep(g, &dx, &dy, ue, un, tan_e);
-        let a = sun.ambient.clamp(0.0, 1.0);
-        let norm = 1.0 / (a + (1.0 - a) * sin_e);
-        let s = [cos_e * ue, cos_e * un, sin_e];
-        let h = &g.values;
-        lit.par_chunks_mut(cols).enumerate().for_each(|(r, row)| {
-            let at = |r: usize, c: usize| h[r * cols + c];
-            for (c, out) in row.iter_mut().enumerate() {
-                let hc = at(r, c);
-                if !hc.is_finite() {
-                    *out = 1.0;
-                    continue;
-                }
-                let west = if c > 0 { at(r, c - 1) } else { f32::NAN };
-                let east = if c + 1 < cols { at(r, c + 1) } else { f32::NAN };
-                let north = if r > 0 { at(r - 1, c) } else { f32::NAN };
-                let south = if r + 1 < rows { at(r + 1, c) } else { f32::NAN };
-                let gx = slope(west, hc, east, dx[r]);
-                let gy = slope(south, hc, north, dy[r]);
-                // Normal (-gx, -gy, 1) / |.|, dotted with the sun's direction.
-                let ns = (s[2] - gx * s[0] - gy * s[1]) / (1.0 + gx * gx + gy * gy).sqrt();
-                *out = ((a + (1.0 - a) * ns.max(0.0) * *out as f64) * norm) as f32;
-            }
-        });
-        let factor = LatLonGrid {
-            north_lat_deg: g.north_lat_deg,
-            west_lon_deg: g.west_lon_deg,
-            dlat_deg: g.dlat_deg,
-            dlon_deg: g.dlon_deg,
-            rows,
-            cols,
-            values: lit,
-        };
+        let light =
+            SunLight { azimuth_deg: sun.azimuth_deg, elevation_deg: sun.elevation_deg, ambient: sun.ambient };
+        let factor = g.with_values(illumination(g, &light));
         Self { factor }
     }
 
@@ -108,95 +45,10 @@ impl Illumination {
     }
 }
 
-/// Rise per metre from `minus` to `plus` across the node `centre`, `step`
-/// metres from each: central difference, one-sided next to no data or the
-/// edge, flat when both neighbours are missing.
-fn slope(minus: f32, centre: f32, plus: f32, step: f64) -> f64 {
-    match (minus.is_finite(), plus.is_finite()) {
-        (true, true) => (plus - minus) as f64 / (2.0 * step),
-        (true, false) => (centre - minus) as f64 / step,
-        (false, true) => (plus - centre) as f64 / step,
-        (false, false) => 0.0,
-    }
-}
-
-/// The `lit` share (0 in cast shadow, 1 in light) of every node: one sweep
-/// along the sun's azimuth (`ue`, `un`: east and north parts of the
-/// horizontal direction to the sun), row-major like the grid. `dx`, `dy`:
-/// node spacing (m) per row.
-fn shadow_sweep(g: &LatLonGrid<f32>, dx: &[f64], dy: &[f64], ue: f64, un: f64, tan_e: f64) -> Vec<f32> {
-    let (rows, cols) = (g.rows, g.cols);
-    let mid = rows / 2;
-    // Lines across the sweep: columns when the sun is more east/west than
-    // north/south in grid steps, rows otherwise. Each step toward the sun
-    // moves one line over and `dpos` along the line.
-    let by_columns = ue.abs() * dy[mid] >= un.abs() * dx[mid];
-    let (n_lines, len) = if by_columns { (cols, rows) } else { (rows, cols) };
-    let index = |line: usize, pos: usize| if by_columns { pos * cols + line } else { line * cols + pos };
-    // Horizontal length (m) of the step to the next line and the offset along it.
-    let step_of = |line: usize, pos: usize| -> (f64, f64) {
-        if by_columns {
-            let step = dx[pos] / ue.abs();
-            (step, -un * step / dy[pos])
-        } else {
-            let step = dy[line] / un.abs();
-            (step, ue * step / dx[line])
-        }
-    };
-    // Line indices grow toward the sun: columns eastward, rows southward.
-    let toward_sun_up = if by_columns { ue > 0.0 } else { un < 0.0 };
-    let mut lit = vec![1f32; rows * cols];
-    // Shadow heights and terrain heights of the upwind line.
-    let mut up_s = vec![f64::NAN; len];
-    let mut up_h = vec![f64::NAN; len];
-    let mut cur_s = vec![f64::NAN; len];
-    for k in 0..n_lines {
-        let line = if toward_sun_up { n_lines - 1 - k } else { k };
-        for pos in 0..len {
-            let h = g.values[index(line, pos)] as f64;
-            if k == 0 {
-                cur_s[pos] = h;
-                continue;
-            }
-            let (step, dpos) = step_of(line, pos);
-            // (A sun along the grid leaves a rounding offset: no step off the edge.)
-            let q = pos as f64 + if dpos.abs() < 1e-9 { 0.0 } else { dpos };
-            let (s_up, h_up) = if q >= 0.0 && q <= (len - 1) as f64 {
-                let i = (q as usize).min(len - 2);
-                let t = q - i as f64;
-                (up_s[i] * (1.0 - t) + up_s[i + 1] * t, up_h[i] * (1.0 - t) + up_h[i + 1] * t)
-            } else {
-                // Beyond the grid: nothing known to cast a shadow.
-                (f64::NAN, f64::NAN)
-            };
-            let drop = step * tan_e;
-            let cand = s_up - drop;
-            // f64::max keeps the number where the other is NaN (no data).
-            cur_s[pos] = h.max(cand);
-            if h.is_nan() || s_up.is_nan() {
-                continue;
-            }
-            // How far the shadow surface passes above the node (m, signed).
-            let depth = cand - h;
-            // Shadow arrives from upwind, or the terrain between rises too
-            // steeply toward the sun: a ramp one step wide, half lit at the
-            // geometric edge (on flat ground the depth changes by `drop` per
-            // step). Otherwise only the shading's own self-shadow applies.
-            if !(s_up - h_up <= SHADOW_EPS_M) || depth > 0.0 {
-                lit[index(line, pos)] = (0.5 - depth / drop).clamp(0.0, 1.0) as f32;
-            }
-        }
-        std::mem::swap(&mut up_s, &mut cur_s);
-        for (pos, v) in up_h.iter_mut().enumerate() {
-            *v = g.values[index(line, pos)] as f64;
-        }
-    }
-    lit
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use trn_geodesy::metres_per_degree;
 
     const LAT0: f64 = 40.2;
     const LON0: f64 = -105.7;

@@ -79,8 +79,10 @@ fn template(rng: &mut Rng, level: u8, east_m: f64, north_m: f64) -> Template {
             shi_tomasi: rng.uniform(0.0, 500.0) as f32,
             contrast_std: rng.uniform(5.0, 60.0) as f32,
             second_peak_ncc: rng.uniform(0.0, 0.9) as f32,
+            shading_share: rng.uniform(0.0, 1.0) as f32,
         },
         source: 0,
+        lighting: 0,
         pixels: (0..PX * PX).map(|_| rng.next_u64() as u8).collect(),
     }
 }

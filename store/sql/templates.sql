@@ -46,8 +46,12 @@ CREATE TABLE templates (
     shi_tomasi FLOAT NOT NULL,
     contrast_std FLOAT NOT NULL,
     second_peak_ncc FLOAT NOT NULL,
+    -- Share of the contrast relief shading could make (0 albedo .. 1 shading).
+    shading_share FLOAT NOT NULL,
     -- Index into the 'sources' metadata list.
     source INTEGER NOT NULL,
+    -- 0: the ortho as imaged; k: rendered under the k-th entry of the 'suns' metadata.
+    lighting SMALLINT NOT NULL CHECK (lighting BETWEEN 0 AND 255),
     -- Grey levels, u8, row-major, row 0 north; keep last.
     pixels BLOB NOT NULL CHECK (length(pixels) = width_px * height_px)
 );

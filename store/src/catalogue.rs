@@ -222,8 +222,10 @@ mod tests {
                         shi_tomasi: (lcg(&mut s) * 4.0).floor() as f32,
                         contrast_std: 1.0,
                         second_peak_ncc: (lcg(&mut s) * 3.0).floor() as f32 / 4.0,
+                        shading_share: 0.25,
                     },
                     source: 0,
+                    lighting: 1,
                     pixels: (0..side * side).map(|k| (k as usize + i) as u8).collect(),
                 }
             })

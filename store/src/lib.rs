@@ -33,7 +33,7 @@ pub use writer::DbWriter;
 
 /// Version of the trn schema (tables and columns below the GeoPackage core). Bump it
 /// with every change to `sql/templates.sql` or to the blob encodings.
-pub const SCHEMA_VERSION: u32 = 2;
+pub const SCHEMA_VERSION: u32 = 3;
 
 /// `PRAGMA application_id` of a GeoPackage: 'GPKG'.
 pub const GPKG_APPLICATION_ID: u32 = 0x4750_4B47;

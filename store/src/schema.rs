@@ -35,7 +35,7 @@ pub(crate) fn level_index_lon_range(fp: &GeoBox) -> (f64, f64) {
 }
 
 /// Columns written by [`bind_template`], in its order.
-const INSERT_COLUMNS: [&str; 28] = [
+const INSERT_COLUMNS: [&str; 30] = [
     "fid",
     "geom",
     "level",
@@ -62,7 +62,9 @@ const INSERT_COLUMNS: [&str; 28] = [
     "shi_tomasi",
     "contrast_std",
     "second_peak_ncc",
+    "shading_share",
     "source",
+    "lighting",
     "pixels",
 ];
 
@@ -80,7 +82,7 @@ macro_rules! template_columns {
          footprint_min_lon_deg, footprint_min_lat_deg, footprint_max_lon_deg, footprint_max_lat_deg, \
          plane_normal_e, plane_normal_n, plane_normal_u, plane_residual_rms_m, \
          height_grid_n, height_grid_spacing_m, height_grid_heights_m, \
-         shi_tomasi, contrast_std, second_peak_ncc, source, pixels"
+         shi_tomasi, contrast_std, second_peak_ncc, shading_share, source, lighting, pixels"
     };
 }
 pub(crate) use template_columns;
@@ -110,7 +112,7 @@ pub(crate) fn validate(t: &Template) -> Result<(), String> {
     let fp = &t.footprint;
     let n = &t.terrain.plane_normal_enu;
     let q = &t.quality;
-    let reals: [(&str, f64); 17] = [
+    let reals: [(&str, f64); 18] = [
         ("gsd_m", t.gsd_m),
         ("center.lat_deg", t.center.lat_deg),
         ("center.lon_deg", t.center.lon_deg),
@@ -127,6 +129,7 @@ pub(crate) fn validate(t: &Template) -> Result<(), String> {
         ("quality.shi_tomasi", q.shi_tomasi as f64),
         ("quality.contrast_std", q.contrast_std as f64),
         ("quality.second_peak_ncc", q.second_peak_ncc as f64),
+        ("quality.shading_share", q.shading_share as f64),
         ("source", t.source as f64),
     ];
     if let Some((name, v)) = reals.iter().find(|(_, v)| !v.is_finite()) {
@@ -190,7 +193,9 @@ pub(crate) fn bind_template(
         &t.quality.shi_tomasi,
         &t.quality.contrast_std,
         &t.quality.second_peak_ncc,
+        &t.quality.shading_share,
         &t.source,
+        &t.lighting,
         &t.pixels,
     ];
     let first = row * INSERT_COLUMNS.len() + 1;
@@ -237,9 +242,11 @@ pub(crate) fn template_from_row(row: &Row<'_>, path: &Path) -> Result<Template, 
                 shi_tomasi: row.get(19)?,
                 contrast_std: row.get(20)?,
                 second_peak_ncc: row.get(21)?,
+                shading_share: row.get(22)?,
             },
-            source: row.get(22)?,
-            pixels: row.get(23)?,
+            source: row.get(23)?,
+            lighting: row.get(24)?,
+            pixels: row.get(25)?,
         })
     })()
     .map_err(|e| corrupt(e.to_string()))?;

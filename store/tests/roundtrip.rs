@@ -30,8 +30,14 @@ fn awkward_template() -> Template {
                 heights_m: vec![f32::MIN_POSITIVE / 2.0, -1.5e-7, f32::MAX, -0.333_333_34],
             },
         },
-        quality: TemplateQuality { shi_tomasi: 1.0e-30, contrast_std: 1.0 / 3.0, second_peak_ncc: -0.1 },
+        quality: TemplateQuality {
+            shi_tomasi: 1.0e-30,
+            contrast_std: 1.0 / 3.0,
+            second_peak_ncc: -0.1,
+            shading_share: 1.0 / 7.0,
+        },
         source: u32::MAX,
+        lighting: u8::MAX,
         pixels: vec![0, 255, 1, 254, 127, 128],
     }
 }

@@ -84,8 +84,10 @@ pub fn synthetic_template(rng: &mut Lcg, level: u8, lat_deg: f64, lon_deg: f64) 
             contrast_std: rng.uniform(5.0, 60.0) as f32,
             // Few distinct values, so that the shi_tomasi and id tie-breaks matter.
             second_peak_ncc: (rng.below(8) as f32) / 10.0,
+            shading_share: (rng.below(5) as f32) / 4.0,
         },
         source: rng.below(3) as u32,
+        lighting: rng.below(2) as u8,
         pixels: (0..width_px * height_px).map(|_| rng.below(256) as u8).collect(),
     }
 }

@@ -1,0 +1,154 @@
+#!/usr/bin/env bash
+# Issue #12's database benchmarks on the realistic scenarios, after
+# scripts/bench_realistic.sh (its flights and database DEMs in target/realistic/):
+#
+# 1. Landmarks in view at the true pose of every frame: the server's own
+#    selection (`trn_navigator::view::landmarks_in_view`, the code behind
+#    /v1/footprint and /v1/coverage) run by `trn coverage --db` on a plan made of
+#    the flight's truth.csv poses and its camera.json. Per scenario and
+#    database: the median and the minimum over frames, and the share of frames
+#    with >= 60.
+# 2. trn navigate on each database (both flights of a pair at once, one per
+#    core): fix share, mean / p95 / worst 3D error of accepted fixes.
+#
+# Databases:
+#   default   the default build (target/realistic/db/WORLD.gpkg)
+#   mission   one per scenario for its mission (`--camera camera.json --altitude
+#             MIN..MAX`, the flight's height range above the terrain;
+#             --max-off-nadir from the boresight)
+#   sun       one per world with every scenario's sun baked in (`--sun AZ,EL`
+#             for each distinct sun of its scenarios); each flight navigates
+#             with `--sun` set to its own
+# Results in target/realistic/databases/results.md.
+#
+#   scripts/bench_databases.sh
+# Environment: OUT (default target/realistic), THREADS (trn build, default 2).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+OUT=${OUT:-target/realistic}
+trn=target/release/trn
+[ -x "$trn" ] || cargo build --release --quiet --bin trn
+suite="$OUT/suite.tsv"
+[ -f "$suite" ] || { echo "no $suite: run scripts/bench_realistic.sh first" >&2; exit 1; }
+work="$OUT/databases"
+mkdir -p "$work"
+rows=()
+while IFS=$'\t' read -r name flight db ortho dem opts; do
+  read -r -a opt_arr <<< "$opts"
+  read -r -a ortho_arr <<< "$ortho"
+  read -r -a dem_arr <<< "$dem"
+  plan="$work/$name-plan.json"
+  # The plan, and the mission: heights above the terrain (the default database's
+  # median template height within 0.1 deg of the start) and the boresight's
+  # largest angle from the vertical.
+  mission=$(python3 - "$flight" "$db" "$plan" <<'PY'
+import csv, json, math, os, sqlite3, sys
+flight, db, plan = sys.argv[1:4]
+cam = json.load(open(os.path.join(flight, "camera.json")))
+rows = list(csv.DictReader(open(os.path.join(flight, "truth.csv"))))
+poses = [{"lat_deg": float(r["lat"]), "lon_deg": float(r["lon"]), "h_m": float(r["h"]),
+          "q_ecef_cam": [float(r[k]) for k in ("qw", "qx", "qy", "qz")]} for r in rows]
+json.dump({"camera": cam, "poses": poses, "threshold": 60}, open(plan, "w"))
+lat, lon = poses[0]["lat_deg"], poses[0]["lon_deg"]
+con = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
+hs = sorted(r[0] for r in con.execute(
+    "SELECT t.h_m FROM templates_rtree AS r CROSS JOIN templates AS t ON t.fid = r.id "
+    "WHERE r.max_lon >= ? AND r.min_lon <= ? AND r.max_lat >= ? AND r.min_lat <= ?",
+    (lon - 0.1, lon + 0.1, lat - 0.1, lat + 0.1)))
+terrain = hs[len(hs) // 2] if hs else 0.0
+off = 0.0
+for p in poses:
+    w, x, y, z = p["q_ecef_cam"]
+    bz = (2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y))
+    la, lo = math.radians(p["lat_deg"]), math.radians(p["lon_deg"])
+    up = (math.cos(la) * math.cos(lo), math.cos(la) * math.sin(lo), math.sin(la))
+    off = max(off, math.degrees(math.acos(max(-1.0, min(1.0, -sum(a * b for a, b in zip(bz, up)))))))
+hs = [p["h_m"] - terrain for p in poses]
+print(f"{max(min(hs), 100.0):.0f}..{max(max(hs), 100.0):.0f} {min(off, 89.0):.1f}")
+PY
+)
+  read -r alt off <<< "$mission"
+  mdb="$work/$name-mission.gpkg"
+  if [ ! -f "$mdb" ] || [ "$flight/camera.json" -nt "$mdb" ]; then
+    echo "== $name: mission database (--altitude $alt --max-off-nadir $off)" >&2
+    "$trn" build --ortho "${ortho_arr[@]}" --dem "${dem_arr[@]}" "${opt_arr[@]}" --camera "$flight/camera.json" \
+      --altitude "$alt" --max-off-nadir "$off" --threads "${THREADS:-2}" --out "$mdb" > "$work/$name-mission-build.json" 2>/dev/null
+  fi
+  for kind in default mission; do
+    d=$db; [ $kind = mission ] && d=$mdb
+    "$trn" coverage --db "$d" --plan "$plan" > "$work/$name-$kind-coverage.json"
+    rows+=("$name $kind $work/$name-$kind-coverage.json $d")
+  done
+done < "$suite"
+
+# Sun databases: per world, every distinct sun of its scenarios.
+declare -A sun_db
+while IFS=$'\t' read -r name flight db ortho dem opts; do
+  w=${db##*/}; w=${w%.gpkg}
+  [ -n "${sun_db[$w]:-}" ] && continue
+  read -r -a opt_arr <<< "$opts"
+  read -r -a ortho_arr <<< "$ortho"
+  read -r -a dem_arr <<< "$dem"
+  suns=$(awk -F'\t' -v d="$db" '$3 == d {print $1}' "$suite" | while read -r n; do
+    python3 -c "import json,sys; s=json.load(open(sys.argv[1]))['realism']['sun']; print('%g,%g,%g' % (s['azimuth_deg'], s['elevation_deg'], s.get('ambient', 0.25)))" \
+      "data-samples/scenarios/realistic/$n.json"; done | sort -u)
+  sdb="$work/$w-sun.gpkg"
+  sun_args=(); for s in $suns; do sun_args+=(--sun "$s"); done
+  if [ ! -f "$sdb" ] || [ "$db" -nt "$sdb" ]; then
+    echo "== $w: sun database (${sun_args[*]})" >&2
+    "$trn" build --ortho "${ortho_arr[@]}" --dem "${dem_arr[@]}" "${opt_arr[@]}" "${sun_args[@]}" \
+      --threads "${THREADS:-2}" --out "$sdb" > "$work/$w-sun-build.json" 2>/dev/null
+  fi
+  sun_db[$w]=$sdb
+done < "$suite"
+
+# Navigation on every database kind.
+jobs="$work/nav-jobs.txt"
+: > "$jobs"
+while IFS=$'\t' read -r name flight db ortho dem opts; do
+  w=${db##*/}; w=${w%.gpkg}
+  sun=$(python3 -c "import json,sys; s=json.load(open(sys.argv[1]))['realism']['sun']; print('%g,%g,%g' % (s['azimuth_deg'], s['elevation_deg'], s.get('ambient', 0.25)))" \
+    "data-samples/scenarios/realistic/$name.json")
+  echo "$name default $flight $db" >> "$jobs"
+  echo "$name mission $flight $work/$name-mission.gpkg" >> "$jobs"
+  echo "$name sun $flight ${sun_db[$w]} --sun $sun" >> "$jobs"
+done < "$suite"
+navigate() {
+  read -r name kind flight db extra <<< "$1"
+  local o="$work/nav-$name-$kind"
+  # shellcheck disable=SC2086
+  "$trn" navigate --db "$db" --flight "$flight" --out "$o.csv" $extra > "$o.json" 2> "$o.log"
+  "$trn" evaluate --flight "$flight" --poses "$o.csv" --json "$o.eval.json" > /dev/null 2>&1
+}
+export -f navigate; export trn work
+echo "== navigating $(wc -l < "$jobs") flight/database pairs" >&2
+tr '\n' '\0' < "$jobs" | xargs -0 -P 2 -I{} bash -c 'navigate "$1"' _ {}
+
+python3 - "$work/results.md" "$work" "${rows[@]}" <<'PY'
+import json, os, sqlite3, statistics, sys
+out, work, rows = sys.argv[1], sys.argv[2], sys.argv[3:]
+def count(db):
+    return sqlite3.connect(f"file:{db}?mode=ro", uri=True).execute("SELECT sum(template_count) FROM trn_levels").fetchone()[0]
+lines = ["| scenario | database | templates | median in view | min in view | frames >= 60 |", "|---|---|---:|---:|---:|---:|"]
+names = []
+for r in rows:
+    name, kind, path, db = r.split(" ")
+    if name not in names:
+        names.append(name)
+    rep = json.load(open(path))
+    n = [p["landmarks"] for p in rep["points"]]
+    lines.append(f"| {name} | {kind} | {count(db)} | {statistics.median(n):.0f} | {min(n)} | {100 * sum(x >= 60 for x in n) / len(n):.0f}% |")
+lines += ["", "| scenario | database | trn fix | mean m | p95 m | worst m |", "|---|---|---:|---:|---:|---:|"]
+for name in names:
+    for kind in ("default", "mission", "sun"):
+        ev = os.path.join(work, f"nav-{name}-{kind}.eval.json")
+        if not os.path.exists(ev):
+            lines.append(f"| {name} | {kind} | failed | | | |")
+            continue
+        r = json.load(open(ev))["runs"][0]
+        e = r["fix_errors"]["pos_m"]
+        f = lambda k: "–" if e.get(k) is None else f"{e[k]:.1f}"
+        lines.append(f"| {name} | {kind} | {100 * r['status']['share_fix']:.0f}% | {f('mean')} | {f('p95')} | {f('max')} |")
+open(out, "w").write("\n".join(lines) + "\n")
+print("\n".join(lines))
+PY

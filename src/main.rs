@@ -140,6 +140,11 @@ struct BuildArgs {
     /// then stored once per sun, and navigators pick theirs with --sun).
     #[arg(long = "sun", value_parser = parse_sun)]
     suns: Vec<trn_landmark::lighting::SunLight>,
+    /// Reject templates whose shading share (how much of their contrast
+    /// relief shading could make, 0..1) is above this: the cell takes its
+    /// next candidate (default: no limit).
+    #[arg(long)]
+    max_shading: Option<f64>,
     /// Worker threads (default: all cores).
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=1024))]
     threads: Option<u32>,
@@ -407,6 +412,7 @@ fn run_build(a: BuildArgs) -> anyhow::Result<()> {
     o.max_relief_gsd = a.max_relief;
     o.max_hidden_share = a.max_hidden;
     o.suns = a.suns.clone();
+    o.max_shading_share = a.max_shading;
     // The plan is checked before the build: a bad one leaves nothing at --out.
     let plan = match &a.coverage_plan {
         Some(p) => {

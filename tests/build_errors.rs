@@ -299,6 +299,8 @@ fn bad_output_folder_and_numeric_options() {
         ("--sun", "east,25"),
         ("--sun", "250,25,1.5"),
         ("--sun", "400,25"),
+        ("--max-shading", "1.5"),
+        ("--max-shading", "-0.1"),
     ] {
         let flag = format!("{option}={value}");
         let args = [&base[..], &["--out", s(&out), &flag]].concat();

@@ -189,3 +189,38 @@ fn baked_sun_shades_and_shadows_the_templates() {
     assert!(one.iter().all(|&n| n > 20), "{one:?}");
     assert_eq!(one, two, "landmarks in view, as imaged and lit for two suns");
 }
+
+/// `--max-shading S` keeps no template whose shading share is above `S`
+/// (the wall's flanks have the largest), and counts what it passed over.
+#[test]
+fn max_shading_rejects_shading_dominated_templates() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let (ortho, _) = common::synth(d, SIZE, GSD, WEST, 3);
+    let dem = d.join("wall.tif");
+    wall_dem(&dem);
+    let out = d.join("limited.gpkg");
+    let o = common::run(&[
+        "build",
+        "--ortho",
+        s(&ortho),
+        "--dem",
+        s(&dem),
+        "--dem-vertical",
+        "ellipsoid",
+        "--max-shading",
+        "0.3",
+        "--out",
+        s(&out),
+    ]);
+    assert!(o.status.success(), "trn build failed: {}", common::stderr(&o));
+    let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let passed_over = report["rejected"]["Shading"].as_u64().unwrap_or(0);
+    assert!(passed_over > 0, "nothing rejected: {}", report["rejected"]);
+    let db = LandmarkDb::open(&out).unwrap();
+    let all = db.query_bbox(&BboxQuery::new(trn_landmark::GeoBox::new(-180.0, -90.0, 180.0, 90.0))).unwrap();
+    assert!(!all.is_empty());
+    let worst = all.iter().map(|t| t.quality.shading_share).fold(0.0, f32::max);
+    assert!(worst <= 0.3, "a template with shading share {worst} was kept");
+    eprintln!("{} templates kept, {passed_over} candidates passed over", all.len());
+}

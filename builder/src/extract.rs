@@ -64,6 +64,9 @@ pub enum Reject {
     Occluded,
     OutsideWindow,
     Nodata,
+    /// Relief shading could make more of the template's contrast than
+    /// `--max-shading` allows (`TemplateQuality::shading_share`).
+    Shading,
 }
 
 pub fn extract(

@@ -100,6 +100,9 @@ pub struct BuildOptions {
     /// once per sun, rendered under it ([`lighting`]); empty: the ortho as
     /// imaged.
     pub suns: Vec<SunLight>,
+    /// Largest shading share a template may have (`--max-shading`): above
+    /// it, the cell takes its next candidate; `None`: no limit.
+    pub max_shading_share: Option<f64>,
 }
 
 /// View angle from the vertical up to which a database built without a
@@ -131,6 +134,7 @@ impl BuildOptions {
             max_hidden_share: 0.5,
             height_grid_n: 9,
             suns: Vec::new(),
+            max_shading_share: None,
         }
     }
 
@@ -221,6 +225,9 @@ impl BuildOptions {
         }
         if self.dem_vertical == Some(DemVertical::Geoid) && self.geoid.is_none() {
             return bad("--dem-vertical", "geoid needs --geoid GRID");
+        }
+        if self.max_shading_share.is_some_and(|v| !(v.is_finite() && (0.0..=1.0).contains(&v))) {
+            return bad("--max-shading", "must be a share in 0..=1");
         }
         if self.suns.len() > 255 {
             return bad("--sun", "at most 255 suns");
@@ -1162,6 +1169,10 @@ fn tile_templates(
                 let std = (t.pixels.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>() / n).sqrt();
                 t.quality.shading_share =
                     lighting::shading_share(&t.terrain.height_grid, mean, std, share_suns);
+                if opts.max_shading_share.is_some_and(|m| t.quality.shading_share as f64 > m) {
+                    *rejected.entry(Reject::Shading).or_default() += 1;
+                    return false;
+                }
                 shading_sum += t.quality.shading_share as f64;
                 if suns.is_empty() {
                     out.push(t);

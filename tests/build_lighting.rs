@@ -51,6 +51,16 @@ fn wall_dem(path: &Path) {
     ds.rasterband(1).unwrap().write((0, 0), (n, n), &mut Buffer::new((n, n), data)).unwrap();
 }
 
+/// `trn build` of `ortho` over `dem` (ellipsoidal heights) into `out`, with `extra` options.
+fn build(ortho: &Path, dem: &Path, out: &Path, extra: &[&str]) -> std::process::Output {
+    let mut args = vec!["build", "--ortho", s(ortho), "--dem", s(dem), "--dem-vertical", "ellipsoid"];
+    args.extend_from_slice(&["--out", s(out)]);
+    args.extend_from_slice(extra);
+    let o = common::run(&args);
+    assert!(o.status.success(), "trn build failed: {}", common::stderr(&o));
+    o
+}
+
 /// Easting range (m from the ortho's west edge) of a template's footprint.
 fn east_range(t: &Template, to_utm: &CoordTransform) -> (f64, f64) {
     let xs: Vec<f64> = t
@@ -85,21 +95,17 @@ fn baked_sun_shades_and_shadows_the_templates() {
     let (ortho, _) = common::synth(d, SIZE, GSD, WEST, 3);
     let dem = d.join("wall.tif");
     wall_dem(&dem);
-    let build = |name: &str, extra: &[&str]| -> Vec<Template> {
+    let build_db = |name: &str, extra: &[&str]| -> Vec<Template> {
         let out = d.join(name);
-        let mut args = vec!["build", "--ortho", s(&ortho), "--dem", s(&dem), "--dem-vertical", "ellipsoid"];
-        args.extend_from_slice(&["--out", s(&out)]);
-        args.extend_from_slice(extra);
-        let o = common::run(&args);
-        assert!(o.status.success(), "trn build failed: {}", common::stderr(&o));
+        build(&ortho, &dem, &out, extra);
         let db = LandmarkDb::open(&out).unwrap();
         let suns = db.metadata("suns").unwrap().unwrap();
         assert_eq!(suns.as_array().unwrap().len(), extra.len() / 2, "{suns}");
         db.query_bbox(&BboxQuery::new(trn_landmark::GeoBox::new(-180.0, -90.0, 180.0, 90.0))).unwrap()
     };
-    let unlit = build("unlit.gpkg", &[]);
+    let unlit = build_db("unlit.gpkg", &[]);
     let (west_sun, east_sun) = (format!("270,{ELEVATION_DEG},{AMBIENT}"), format!("90,{ELEVATION_DEG}"));
-    let lit = build("lit.gpkg", &["--sun", &west_sun, "--sun", &east_sun]);
+    let lit = build_db("lit.gpkg", &["--sun", &west_sun, "--sun", &east_sun]);
 
     // Each landmark once per sun, with the same terrain and scores (the
     // shading share is taken over the build's suns when it has any).
@@ -200,20 +206,7 @@ fn max_shading_rejects_shading_dominated_templates() {
     let dem = d.join("wall.tif");
     wall_dem(&dem);
     let out = d.join("limited.gpkg");
-    let o = common::run(&[
-        "build",
-        "--ortho",
-        s(&ortho),
-        "--dem",
-        s(&dem),
-        "--dem-vertical",
-        "ellipsoid",
-        "--max-shading",
-        "0.3",
-        "--out",
-        s(&out),
-    ]);
-    assert!(o.status.success(), "trn build failed: {}", common::stderr(&o));
+    let o = build(&ortho, &dem, &out, &["--max-shading", "0.3"]);
     let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     let passed_over = report["rejected"]["Shading"].as_u64().unwrap_or(0);
     assert!(passed_over > 0, "nothing rejected: {}", report["rejected"]);

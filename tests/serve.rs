@@ -439,7 +439,7 @@ fn replicas_behind_a_balancer_reload_one_after_another_without_a_failed_request(
         queries
             .iter()
             .map(|(b, l)| {
-                let q = BboxQuery { bbox: *b, levels: l.map(|l| l..=l), limit: Some(201) };
+                let q = BboxQuery { bbox: *b, levels: l.map(|l| l..=l), limit: Some(201), lighting: None };
                 let mut t = db.query_bbox(&q).unwrap();
                 let truncated = t.len() > 200;
                 t.truncate(200);
@@ -764,4 +764,59 @@ fn navigate_through_the_server_gives_the_same_poses_and_coverage_maps_them() {
     let e = stderr(&o);
     assert!(e.contains(&format!("{}/v1/coverage: HTTP 422", server.url)), "{e}");
     assert!(e.contains("poses[0]: lat_deg 91 is not in [-90, 90]"), "{e}");
+}
+
+/// A database lit for two suns: `trn navigate --sun` asks the server for its
+/// lighting only (`&lighting=K`) and gets what the database gives it directly.
+#[test]
+fn navigate_a_lit_database_through_the_server() {
+    let fixture = nav_fixture();
+    let root = fixture.root();
+    let (ortho, dem) = (root.join("synth-ortho-21.tif"), root.join("synth-dem-21.tif"));
+    let db = root.join("lit.gpkg");
+    let s = |p: &Path| p.to_str().unwrap().to_owned();
+    let o = run(&[
+        "build",
+        "--ortho",
+        &s(&ortho),
+        "--dem",
+        &s(&dem),
+        "--dem-vertical",
+        "ellipsoid",
+        "--spacing",
+        "32",
+        "--sun",
+        "135,35",
+        "--sun",
+        "250,20",
+        "--out",
+        &s(&db),
+    ]);
+    assert!(o.status.success(), "build failed: {}", stderr(&o));
+    let server = Server::start(&db, root.join("serve-lit.log"), &[]);
+    let navigate = |source: &[&str], out: &Path| {
+        let mut args =
+            vec!["navigate", "--flight", fixture.flight.to_str().unwrap(), "--out", out.to_str().unwrap()];
+        args.extend_from_slice(source);
+        args.extend_from_slice(&["--sun", "250,21"]);
+        let o = run(&args);
+        assert!(o.status.success(), "navigate {source:?} failed: {}", stderr(&o));
+        stderr(&o)
+    };
+    let (by_db, by_http) = (root.join("lit-db").join("poses.csv"), root.join("lit-http").join("poses.csv"));
+    std::fs::create_dir_all(by_db.parent().unwrap()).unwrap();
+    std::fs::create_dir_all(by_http.parent().unwrap()).unwrap();
+    let log = navigate(&["--db", &s(&db)], &by_db);
+    assert!(log.contains("lighting 2"), "the sun nearest 250/21 is the second: {log}");
+    navigate(&["--server", &server.url], &by_http);
+    let strip = |p: &Path| -> Vec<String> {
+        std::fs::read_to_string(p)
+            .unwrap()
+            .lines()
+            .map(|l| l.rsplit_once(',').map_or(l, |x| x.0).to_owned())
+            .collect()
+    };
+    let (a, b) = (strip(&by_db), strip(&by_http));
+    assert_eq!(a, b, "poses through the server differ from the database's");
+    assert!(a.iter().skip(1).filter(|l| l.contains(",fix,")).count() >= a.len() * 9 / 10, "{a:?}");
 }

@@ -54,6 +54,9 @@ impl fmt::Display for WireError {
 
 impl std::error::Error for WireError {}
 
+/// Where a record's `lighting` byte is (after `id` and `level`).
+pub const LIGHTING_OFFSET: usize = 9;
+
 /// Bytes of a record without height grid and pixels.
 pub const MIN_RECORD_LEN: usize = 8 + 2 + 4 * 3 + 8 * 12 + 4 + 8 + 4 * 4;
 

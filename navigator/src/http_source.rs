@@ -89,6 +89,35 @@ impl HttpSource {
         Ok(me)
     }
 
+    /// `GET /v1/templates` of one level (and lighting), every page.
+    fn templates(
+        &self,
+        bbox: &GeoBox,
+        level: u8,
+        lighting: Option<u8>,
+    ) -> Result<Vec<Template>, SourceError> {
+        // The server refuses coordinates off the globe; clamping them changes no
+        // result (no footprint lies beyond), so the answer is the DbSource's.
+        let b = GeoBox::new(
+            bbox.min_lon_deg.clamp(-180.0, 180.0),
+            bbox.min_lat_deg.clamp(-90.0, 90.0),
+            bbox.max_lon_deg.clamp(-180.0, 180.0),
+            bbox.max_lat_deg.clamp(-90.0, 90.0),
+        );
+        let lit = lighting.map(|k| format!("&lighting={k}")).unwrap_or_default();
+        let mut body = self.body.lock().unwrap_or_else(|p| p.into_inner());
+        collect_pages(|offset| {
+            // `{}` prints the shortest decimal that parses back to the same f64.
+            let path = format!(
+                "/v1/templates?bbox={},{},{},{}&level={level}{lit}&limit={PAGE_SIZE}&offset={offset}",
+                b.min_lon_deg, b.min_lat_deg, b.max_lon_deg, b.max_lat_deg,
+            );
+            let etag = self.get_into(&path, wire::MEDIA_TYPE, &mut body)?;
+            let page = wire::decode(&body).map_err(|e| SourceError(format!("{}{path}: {e}", self.base)))?;
+            Ok(Page { items: page.templates, truncated: page.truncated, etag })
+        })
+    }
+
     pub fn base_url(&self) -> &str {
         &self.base
     }
@@ -224,24 +253,10 @@ impl LandmarkSource for HttpSource {
     }
 
     fn query(&self, bbox: &GeoBox, level: u8) -> Result<Vec<Template>, SourceError> {
-        // The server refuses coordinates off the globe; clamping them changes no
-        // result (no footprint lies beyond), so the answer is the DbSource's.
-        let b = GeoBox::new(
-            bbox.min_lon_deg.clamp(-180.0, 180.0),
-            bbox.min_lat_deg.clamp(-90.0, 90.0),
-            bbox.max_lon_deg.clamp(-180.0, 180.0),
-            bbox.max_lat_deg.clamp(-90.0, 90.0),
-        );
-        let mut body = self.body.lock().unwrap_or_else(|p| p.into_inner());
-        collect_pages(|offset| {
-            // `{}` prints the shortest decimal that parses back to the same f64.
-            let path = format!(
-                "/v1/templates?bbox={},{},{},{}&level={level}&limit={PAGE_SIZE}&offset={offset}",
-                b.min_lon_deg, b.min_lat_deg, b.max_lon_deg, b.max_lat_deg,
-            );
-            let etag = self.get_into(&path, wire::MEDIA_TYPE, &mut body)?;
-            let page = wire::decode(&body).map_err(|e| SourceError(format!("{}{path}: {e}", self.base)))?;
-            Ok(Page { items: page.templates, truncated: page.truncated, etag })
-        })
+        self.templates(bbox, level, None)
+    }
+
+    fn query_lit(&self, bbox: &GeoBox, level: u8, lighting: u8) -> Result<Vec<Template>, SourceError> {
+        self.templates(bbox, level, Some(lighting))
     }
 }

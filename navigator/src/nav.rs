@@ -363,8 +363,10 @@ impl<'a> Navigator<'a> {
                     (bbox.max_lat_deg + dh).min(90.0),
                 )
             };
-            let mut ts = self.source.query(&big, level)?;
-            ts.retain(|t| t.lighting == self.lighting);
+            let ts = match self.lighting {
+                0 => self.source.query(&big, level)?,
+                k => self.source.query_lit(&big, level, k)?,
+            };
             cache.insert(level, (big, ts));
         }
         let (_, ts) = &cache[&level];

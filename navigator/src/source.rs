@@ -22,6 +22,13 @@ pub trait LandmarkSource {
     fn suns(&self) -> Result<Vec<SunLight>, SourceError> {
         Ok(Vec::new())
     }
+    /// [`LandmarkSource::query`] for the templates of one lighting only (a
+    /// source that can filters before sending them).
+    fn query_lit(&self, bbox: &GeoBox, level: u8, lighting: u8) -> Result<Vec<Template>, SourceError> {
+        let mut ts = self.query(bbox, level)?;
+        ts.retain(|t| t.lighting == lighting);
+        Ok(ts)
+    }
 }
 
 /// The `suns` entry of a database's build metadata (none: empty).
@@ -49,6 +56,11 @@ impl LandmarkSource for LandmarkDb {
         let m = self.metadata("suns").map_err(|e| SourceError(e.to_string()))?;
         suns_of_metadata(m.as_ref(), &self.path().display().to_string())
     }
+
+    fn query_lit(&self, bbox: &GeoBox, level: u8, lighting: u8) -> Result<Vec<Template>, SourceError> {
+        self.query_bbox(&BboxQuery::new(*bbox).with_levels(level..=level).with_lighting(lighting))
+            .map_err(|e| SourceError(e.to_string()))
+    }
 }
 
 /// A landmark database opened directly.
@@ -73,5 +85,9 @@ impl LandmarkSource for DbSource {
 
     fn suns(&self) -> Result<Vec<SunLight>, SourceError> {
         LandmarkSource::suns(&self.db)
+    }
+
+    fn query_lit(&self, bbox: &GeoBox, level: u8, lighting: u8) -> Result<Vec<Template>, SourceError> {
+        LandmarkSource::query_lit(&self.db, bbox, level, lighting)
     }
 }

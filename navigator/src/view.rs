@@ -154,10 +154,11 @@ pub fn landmarks_in_view(
     let first_lighting = (!source.suns()?.is_empty()).then_some(1u8);
     let mut templates = Vec::new();
     for l in levels.iter().map(|l| l.level).filter(|&l| l >= lo && l <= hi) {
-        for t in source.query(&fp.bbox, l)? {
-            if first_lighting.is_some_and(|k| t.lighting != k) {
-                continue;
-            }
+        let found = match first_lighting {
+            Some(k) => source.query_lit(&fp.bbox, l, k)?,
+            None => source.query(&fp.bbox, l)?,
+        };
+        for t in found {
             if !level_fits(levels, &t, local_gsd_m(camera, pose, &t)) {
                 continue;
             }

@@ -97,6 +97,9 @@ pub struct BboxParams {
     pub limit: Option<String>,
     /// Skip this many of the best first (paging; default 0).
     pub offset: Option<String>,
+    /// Only templates of this lighting (0..=255: 0 the ortho as imaged, k
+    /// the database's k-th baked sun); default all.
+    pub lighting: Option<String>,
 }
 
 /// The checked form of [`BboxParams`].
@@ -106,6 +109,7 @@ pub struct TemplatesQuery {
     pub levels: Option<std::ops::RangeInclusive<u8>>,
     pub limit: usize,
     pub offset: usize,
+    pub lighting: Option<u8>,
 }
 
 /// Parses `min_lon,min_lat,max_lon,max_lat`.
@@ -206,7 +210,9 @@ impl BboxParams {
             None => 0,
             Some(o) => parse_number("offset", o, 0..=MAX_OFFSET)?,
         };
-        Ok(TemplatesQuery { bbox, levels, limit, offset })
+        let lighting =
+            self.lighting.as_deref().map(|l| parse_number("lighting", l, 0..=255u8)).transpose()?;
+        Ok(TemplatesQuery { bbox, levels, limit, offset, lighting })
     }
 }
 
@@ -313,7 +319,12 @@ pub async fn templates(
     let Query(params) = params.map_err(|r| ApiError::bad_request(r.body_text()))?;
     let q = params.check()?;
     // One more than the page tells whether the list goes on.
-    let query = BboxQuery { bbox: q.bbox, levels: q.levels.clone(), limit: Some(q.offset + q.limit + 1) };
+    let query = BboxQuery {
+        bbox: q.bbox,
+        levels: q.levels.clone(),
+        limit: Some(q.offset + q.limit + 1),
+        lighting: q.lighting,
+    };
     let db = state.db.load_full();
     if let (Some(cat), true) = (db.catalogue(), wants_binary(&headers)) {
         // From memory the records are already encoded: the answer is their

@@ -210,6 +210,11 @@ impl LandmarkSource for Store<'_> {
     fn suns(&self) -> Result<Vec<trn_landmark::lighting::SunLight>, SourceError> {
         LandmarkSource::suns(self.conn)
     }
+
+    fn query_lit(&self, bbox: &GeoBox, level: u8, lighting: u8) -> Result<Vec<Template>, SourceError> {
+        self.query_bbox(&BboxQuery::new(*bbox).with_levels(level..=level).with_lighting(lighting))
+            .map_err(|e| SourceError(e.to_string()))
+    }
 }
 
 /// A connection taken from the pool, put back when dropped (also on a panic).

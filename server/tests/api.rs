@@ -159,10 +159,15 @@ fn rt() -> tokio::runtime::Runtime {
 }
 
 /// Brute force: matching templates best first.
-fn brute(ts: &[Template], bbox: &GeoBox, levels: (u8, u8)) -> Vec<i64> {
+fn brute(ts: &[Template], bbox: &GeoBox, levels: (u8, u8), lighting: Option<u8>) -> Vec<i64> {
     let mut m: Vec<&Template> = ts
         .iter()
-        .filter(|t| t.level >= levels.0 && t.level <= levels.1 && bbox.intersects(&t.footprint))
+        .filter(|t| {
+            t.level >= levels.0
+                && t.level <= levels.1
+                && lighting.is_none_or(|k| k == t.lighting)
+                && bbox.intersects(&t.footprint)
+        })
         .collect();
     m.sort_by(|a, b| {
         a.quality
@@ -235,11 +240,14 @@ fn bbox_queries_equal_a_brute_force_scan_with(cache_bytes: u64) {
             (a, b) if a == b => format!("&level={a}"),
             (a, b) => format!("&level={a}..{b}"),
         };
+        // A quarter of the queries ask for one lighting (the templates have 0..=2).
+        let lighting = (rng.below(4) == 0).then(|| rng.below(3) as u8);
+        let lighting_param = lighting.map(|k| format!("&lighting={k}")).unwrap_or_default();
         let uri = format!(
-            "/v1/templates?bbox={},{},{},{}{level_param}&limit={limit}&offset={offset}",
+            "/v1/templates?bbox={},{},{},{}{level_param}{lighting_param}&limit={limit}&offset={offset}",
             bbox.min_lon_deg, bbox.min_lat_deg, bbox.max_lon_deg, bbox.max_lat_deg
         );
-        let all = brute(&f.templates, &bbox, levels);
+        let all = brute(&f.templates, &bbox, levels, lighting);
         let want: Vec<i64> = all.iter().skip(offset).take(limit).copied().collect();
         let want_truncated = all.len() > offset + limit;
         let a = rt.block_on(call(&f.app, get(&uri)));
@@ -444,6 +452,8 @@ fn bad_requests_are_named() {
         ("GET", "/v1/templates?bbox=0,0,1,1&limit=0".into(), None, 400, &["limit"]),
         ("GET", "/v1/templates?bbox=0,0,1,1&limit=99999999999999999999".into(), None, 400, &["limit"]),
         ("GET", "/v1/templates?bbox=0,0,1,1&offset=-1".into(), None, 400, &["offset"]),
+        ("GET", "/v1/templates?bbox=0,0,1,1&lighting=256".into(), None, 400, &["lighting"]),
+        ("GET", "/v1/templates?bbox=0,0,1,1&lighting=sun".into(), None, 400, &["lighting"]),
         ("GET", "/v1/templates?bbox=0,0,1,1&colour=red".into(), None, 400, &["colour"]),
         ("GET", "/v1/templates/abc".into(), None, 400, &["id", "abc"]),
         ("GET", "/v1/templates/99999999999999999999".into(), None, 400, &["id"]),

@@ -151,6 +151,9 @@ impl Catalogue {
             for tree in self.by_level.range(lo..=hi).map(|(_, t)| t) {
                 for hit in tree.locate_in_envelope_intersecting(&aabb) {
                     let e = &self.entries[hit.data as usize];
+                    if query.lighting.is_some_and(|k| self.records[e.start + wire::LIGHTING_OFFSET] != k) {
+                        continue;
+                    }
                     // The index is exact already; the recheck keeps one definition.
                     if query.bbox.intersects(&e.footprint) {
                         found.push((e.rank, hit.data));
@@ -225,7 +228,7 @@ mod tests {
                         shading_share: 0.25,
                     },
                     source: 0,
-                    lighting: 1,
+                    lighting: (i % 2) as u8,
                     pixels: (0..side * side).map(|k| (k as usize + i) as u8).collect(),
                 }
             })
@@ -271,6 +274,9 @@ mod tests {
             }
             if k % 7 == 0 {
                 q = q.with_limit(5);
+            }
+            if k % 5 == 0 {
+                q = q.with_lighting((k / 5 % 2) as u8);
             }
             let want = db.query_bbox(&q).unwrap();
             let got = cat.query_templates(&q).unwrap();

@@ -80,12 +80,14 @@ pub struct BboxQuery {
     pub bbox: GeoBox,
     pub levels: Option<RangeInclusive<u8>>,
     pub limit: Option<usize>,
+    /// Only templates of this lighting (`Template::lighting`); `None`: all.
+    pub lighting: Option<u8>,
 }
 
 impl BboxQuery {
     /// All levels, no limit.
     pub fn new(bbox: GeoBox) -> Self {
-        Self { bbox, levels: None, limit: None }
+        Self { bbox, levels: None, limit: None, lighting: None }
     }
 
     pub fn with_levels(mut self, levels: RangeInclusive<u8>) -> Self {
@@ -95,6 +97,11 @@ impl BboxQuery {
 
     pub fn with_limit(mut self, limit: usize) -> Self {
         self.limit = Some(limit);
+        self
+    }
+
+    pub fn with_lighting(mut self, lighting: u8) -> Self {
+        self.lighting = Some(lighting);
         self
     }
 }

@@ -20,7 +20,7 @@ const CANDIDATES_SQL: &str = "SELECT t.fid,
         t.second_peak_ncc, t.shi_tomasi
     FROM templates_rtree AS r CROSS JOIN templates AS t ON t.fid = r.id
     WHERE r.max_lon >= ?1 AND r.min_lon <= ?2 AND r.max_lat >= ?3 AND r.min_lat <= ?4
-      AND r.max_level >= ?5 AND r.min_level <= ?6";
+      AND r.max_level >= ?5 AND r.min_level <= ?6 AND (?7 IS NULL OR t.lighting = ?7)";
 
 /// Whole rows of the R*Tree's candidates (same order of columns as [`template_columns`]).
 const FULL_SQL: &str = concat!(
@@ -28,7 +28,7 @@ const FULL_SQL: &str = concat!(
     template_columns!(),
     " FROM templates_rtree AS r CROSS JOIN templates AS t ON t.fid = r.id
     WHERE r.max_lon >= ?1 AND r.min_lon <= ?2 AND r.max_lat >= ?3 AND r.min_lat <= ?4
-      AND r.max_level >= ?5 AND r.min_level <= ?6"
+      AND r.max_level >= ?5 AND r.min_level <= ?6 AND (?7 IS NULL OR t.lighting = ?7)"
 );
 
 /// What the query order ranks by.
@@ -216,7 +216,8 @@ impl LandmarkDb {
                     part.min_lat_deg,
                     part.max_lat_deg,
                     min_level,
-                    max_level
+                    max_level,
+                    query.lighting
                 ])
                 .at(&self.path)?;
             while let Some(row) = rows.next().at(&self.path)? {
@@ -359,7 +360,7 @@ mod tests {
         let db = LandmarkDb::open(&path).unwrap();
         let mut stmt = db.conn.prepare(&format!("EXPLAIN QUERY PLAN {CANDIDATES_SQL}")).unwrap();
         let details: Vec<String> = stmt
-            .query_map(rusqlite::params![0.0, 1.0, 0.0, 1.0, 3, 3], |r| r.get(3))
+            .query_map(rusqlite::params![0.0, 1.0, 0.0, 1.0, 3, 3, Option::<u8>::None], |r| r.get(3))
             .unwrap()
             .collect::<Result<_, _>>()
             .unwrap();

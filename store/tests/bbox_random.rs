@@ -175,7 +175,11 @@ fn random_box(rng: &mut Lcg, t: &Template) -> GeoBox {
 fn brute_force(templates: &[Template], q: &BboxQuery) -> Vec<i64> {
     let mut hits: Vec<&Template> = templates
         .iter()
-        .filter(|t| q.levels.as_ref().is_none_or(|r| r.contains(&t.level)) && q.bbox.intersects(&t.footprint))
+        .filter(|t| {
+            q.levels.as_ref().is_none_or(|r| r.contains(&t.level))
+                && q.lighting.is_none_or(|k| k == t.lighting)
+                && q.bbox.intersects(&t.footprint)
+        })
         .collect();
     hits.sort_by(|a, b| {
         a.quality
@@ -205,6 +209,9 @@ fn random_queries_match_brute_force() {
         q.levels = random_levels(&mut rng);
         if rng.chance(0.2) {
             q.limit = Some(rng.below(20) as usize);
+        }
+        if rng.chance(0.25) {
+            q.lighting = Some(rng.below(2) as u8);
         }
         let expected = brute_force(&templates, &q);
         let got = db.query_bbox_ids(&q).unwrap();

@@ -652,32 +652,38 @@ fn serve_names_bad_options() {
     assert!(stderr(&o).contains(&format!("{closed}/v1/coverage: no answer")), "{}", stderr(&o));
 }
 
+/// `trn navigate` of `flight` into `out` (its folder created) with the
+/// landmark `source` and `extra` options; its stderr.
+fn navigate_into(flight: &Path, source: &[&str], extra: &[&str], out: &Path) -> String {
+    std::fs::create_dir_all(out.parent().unwrap()).unwrap();
+    let mut args = vec!["navigate", "--flight", flight.to_str().unwrap(), "--out", out.to_str().unwrap()];
+    args.extend_from_slice(source);
+    args.extend_from_slice(extra);
+    let o = run(&args);
+    assert!(o.status.success(), "navigate {source:?} failed: {}", stderr(&o));
+    stderr(&o)
+}
+
+/// The rows of a poses file but the per-frame time column (ms, last).
+fn poses_without_time(p: &Path) -> Vec<String> {
+    std::fs::read_to_string(p)
+        .unwrap()
+        .lines()
+        .map(|l| l.rsplit_once(',').map_or(l, |x| x.0).to_owned())
+        .collect()
+}
+
 #[test]
 fn navigate_through_the_server_gives_the_same_poses_and_coverage_maps_them() {
     // As tests/navigate.rs: a synthetic map, its database, a 3 s nadir flight.
     let fixture = nav_fixture();
     let (root, db, flight) = (fixture.root(), &fixture.db, &fixture.flight);
     let server = Server::start(db, root.join("serve.log"), &[]);
-    let navigate = |source: &[&str], out: &Path| {
-        let mut args = vec!["navigate", "--flight", flight.to_str().unwrap(), "--out", out.to_str().unwrap()];
-        args.extend_from_slice(source);
-        let o = run(&args);
-        assert!(o.status.success(), "navigate {source:?} failed: {}", stderr(&o));
-    };
     let (by_db, by_http) = (root.join("db").join("poses.csv"), root.join("http").join("poses.csv"));
-    std::fs::create_dir_all(by_db.parent().unwrap()).unwrap();
-    std::fs::create_dir_all(by_http.parent().unwrap()).unwrap();
-    navigate(&["--db", db.to_str().unwrap()], &by_db);
-    navigate(&["--server", &server.url], &by_http);
-    // Identical but the per-frame time column (ms, last).
-    let strip = |p: &Path| -> Vec<String> {
-        std::fs::read_to_string(p)
-            .unwrap()
-            .lines()
-            .map(|l| l.rsplit_once(',').map_or(l, |x| x.0).to_owned())
-            .collect()
-    };
-    let (a, b) = (strip(&by_db), strip(&by_http));
+    navigate_into(flight, &["--db", db.to_str().unwrap()], &[], &by_db);
+    navigate_into(flight, &["--server", &server.url], &[], &by_http);
+    // Identical but the per-frame time column.
+    let (a, b) = (poses_without_time(&by_db), poses_without_time(&by_http));
     assert!(a.len() > 10, "{} rows", a.len());
     assert_eq!(a, b, "poses through the server differ from the database's");
     assert_eq!(
@@ -794,29 +800,12 @@ fn navigate_a_lit_database_through_the_server() {
     ]);
     assert!(o.status.success(), "build failed: {}", stderr(&o));
     let server = Server::start(&db, root.join("serve-lit.log"), &[]);
-    let navigate = |source: &[&str], out: &Path| {
-        let mut args =
-            vec!["navigate", "--flight", fixture.flight.to_str().unwrap(), "--out", out.to_str().unwrap()];
-        args.extend_from_slice(source);
-        args.extend_from_slice(&["--sun", "250,21"]);
-        let o = run(&args);
-        assert!(o.status.success(), "navigate {source:?} failed: {}", stderr(&o));
-        stderr(&o)
-    };
     let (by_db, by_http) = (root.join("lit-db").join("poses.csv"), root.join("lit-http").join("poses.csv"));
-    std::fs::create_dir_all(by_db.parent().unwrap()).unwrap();
-    std::fs::create_dir_all(by_http.parent().unwrap()).unwrap();
-    let log = navigate(&["--db", &s(&db)], &by_db);
+    let sun = ["--sun", "250,21"];
+    let log = navigate_into(&fixture.flight, &["--db", &s(&db)], &sun, &by_db);
     assert!(log.contains("lighting 2"), "the sun nearest 250/21 is the second: {log}");
-    navigate(&["--server", &server.url], &by_http);
-    let strip = |p: &Path| -> Vec<String> {
-        std::fs::read_to_string(p)
-            .unwrap()
-            .lines()
-            .map(|l| l.rsplit_once(',').map_or(l, |x| x.0).to_owned())
-            .collect()
-    };
-    let (a, b) = (strip(&by_db), strip(&by_http));
+    navigate_into(&fixture.flight, &["--server", &server.url], &sun, &by_http);
+    let (a, b) = (poses_without_time(&by_db), poses_without_time(&by_http));
     assert_eq!(a, b, "poses through the server differ from the database's");
     assert!(a.iter().skip(1).filter(|l| l.contains(",fix,")).count() >= a.len() * 9 / 10, "{a:?}");
 }

@@ -3,7 +3,10 @@
 //! The main type is [`Template`]: a small north-up image patch resampled on the
 //! local tangent plane at its centre, 3D-referenced on the WGS84 ellipsoid, with
 //! the terrain geometry (a plane fit and a coarse height grid) the navigator needs
-//! to predict it into a camera image. Pure data, no I/O.
+//! to predict it into a camera image. Pure data, no I/O. Also: [`wire`], the
+//! binary encoding of template lists; [`grid`], values on a latitude/longitude
+//! grid; [`lighting`], the brightness of terrain under a sun (the builder bakes
+//! it into templates, the simulator re-lights its worlds with it).
 
 pub mod grid;
 pub mod lighting;

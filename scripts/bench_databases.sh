@@ -42,27 +42,20 @@ while IFS=$'\t' read -r name flight db ortho dem opts; do
   # median template height within 0.1 deg of the start) and the boresight's
   # largest angle from the vertical.
   mission=$(python3 - "$flight" "$db" "$plan" <<'PY'
-import csv, json, math, os, sqlite3, sys
+import csv, json, math, os, sys
+sys.path.insert(0, "scripts")
+from benchlib import boresight_cos_from_vertical, terrain_height
 flight, db, plan = sys.argv[1:4]
 cam = json.load(open(os.path.join(flight, "camera.json")))
 rows = list(csv.DictReader(open(os.path.join(flight, "truth.csv"))))
 poses = [{"lat_deg": float(r["lat"]), "lon_deg": float(r["lon"]), "h_m": float(r["h"]),
           "q_ecef_cam": [float(r[k]) for k in ("qw", "qx", "qy", "qz")]} for r in rows]
 json.dump({"camera": cam, "poses": poses, "threshold": 60}, open(plan, "w"))
-lat, lon = poses[0]["lat_deg"], poses[0]["lon_deg"]
-con = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
-hs = sorted(r[0] for r in con.execute(
-    "SELECT t.h_m FROM templates_rtree AS r CROSS JOIN templates AS t ON t.fid = r.id "
-    "WHERE r.max_lon >= ? AND r.min_lon <= ? AND r.max_lat >= ? AND r.min_lat <= ?",
-    (lon - 0.1, lon + 0.1, lat - 0.1, lat + 0.1)))
-terrain = hs[len(hs) // 2] if hs else 0.0
+terrain = terrain_height(db, poses[0]["lat_deg"], poses[0]["lon_deg"])
 off = 0.0
 for p in poses:
-    w, x, y, z = p["q_ecef_cam"]
-    bz = (2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y))
-    la, lo = math.radians(p["lat_deg"]), math.radians(p["lon_deg"])
-    up = (math.cos(la) * math.cos(lo), math.cos(la) * math.sin(lo), math.sin(la))
-    off = max(off, math.degrees(math.acos(max(-1.0, min(1.0, -sum(a * b for a, b in zip(bz, up)))))))
+    c = boresight_cos_from_vertical(p["q_ecef_cam"], p["lat_deg"], p["lon_deg"])
+    off = max(off, math.degrees(math.acos(max(-1.0, min(1.0, c)))))
 hs = [p["h_m"] - terrain for p in poses]
 print(f"{max(min(hs), 100.0):.0f}..{max(max(hs), 100.0):.0f} {min(off, 89.0):.1f}")
 PY

@@ -116,7 +116,9 @@ mkdir -p "$OUT/baseline-db"
 choose_db() { # flight trn_db json_out ortho...
   local f=$1 d=$2 j=$3; shift 3
   "$PY" - "$f" "$d" "$j" "$@" <<'EOF'
-import csv, json, math, os, sqlite3, subprocess, sys
+import csv, json, math, os, subprocess, sys
+sys.path.insert(0, "scripts")
+from benchlib import boresight_cos_from_vertical, terrain_height
 flight, db, jout, orthos = sys.argv[1], sys.argv[2], sys.argv[3], sys.argv[4:]
 cam = json.load(open(os.path.join(flight, "camera.json")))
 init = json.load(open(os.path.join(flight, "init.json")))
@@ -133,18 +135,9 @@ elif os.path.exists(os.path.join(flight, "truth.csv")):
     if hs:
         heights += [min(hs), max(hs)]
         source = "init.json + truth.csv altitude range"
-con = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
-hs = sorted(r[0] for r in con.execute(
-    "SELECT t.h_m FROM templates_rtree AS r CROSS JOIN templates AS t ON t.fid = r.id "
-    "WHERE r.max_lon >= ? AND r.min_lon <= ? AND r.max_lat >= ? AND r.min_lat <= ?",
-    (lon - 0.1, lon + 0.1, lat - 0.1, lat + 0.1)))
-terrain = hs[len(hs) // 2] if hs else 0.0
-# Boresight incidence from init.json's attitude (camera z in ECEF against the local up).
-qw, qx, qy, qz = init["q_ecef_cam"]
-z = (2 * (qx * qz + qw * qy), 2 * (qy * qz - qw * qx), 1 - 2 * (qx * qx + qy * qy))
-la, lo = math.radians(lat), math.radians(lon)
-up = (math.cos(la) * math.cos(lo), math.cos(la) * math.sin(lo), math.sin(la))
-cos_i = max(-sum(a * b for a, b in zip(z, up)) / math.sqrt(sum(a * a for a in z)), math.cos(math.radians(70.0)))
+terrain = terrain_height(db, lat, lon)
+# Boresight incidence from init.json's attitude.
+cos_i = max(boresight_cos_from_vertical(init["q_ecef_cam"], lat, lon), math.cos(math.radians(70.0)))
 def gsd(agl):
     return agl / cos_i / fx / math.sqrt(cos_i)
 agl_lo, agl_hi = max(min(heights) - terrain, 100.0), max(max(heights) - terrain, 100.0)

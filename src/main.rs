@@ -294,7 +294,7 @@ struct NavigateArgs {
     sun: Option<trn_landmark::lighting::SunLight>,
     /// Weight of a template's shading share in the choice of landmarks when
     /// the database's lighting is not the flight's sun (0: ignored).
-    #[arg(long, default_value_t = 0.5)]
+    #[arg(long, default_value_t = 0.5, value_parser = parse_share)]
     shading_weight: f64,
 }
 
@@ -466,6 +466,14 @@ fn parse_altitude(s: &str) -> Result<(f64, f64), String> {
     Ok((lo, hi))
 }
 
+/// A share in 0..=1.
+fn parse_share(s: &str) -> Result<f64, String> {
+    match s.trim().parse::<f64>() {
+        Ok(v) if (0.0..=1.0).contains(&v) => Ok(v),
+        _ => Err(format!("{s:?}: expected a share in 0..=1")),
+    }
+}
+
 /// `AZ,EL[,DIFFUSE]` (degrees, share) as a sun.
 fn parse_sun(s: &str) -> Result<trn_landmark::lighting::SunLight, String> {
     let parts: Vec<&str> = s.split(',').map(str::trim).collect();
@@ -576,10 +584,6 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
     params.max_height_jump_m = a.max_height_jump;
     params.max_landmarks = a.max_landmarks;
     params.sun = a.sun;
-    anyhow::ensure!(
-        (0.0..=1.0).contains(&a.shading_weight),
-        "invalid option --shading-weight: must be in 0..=1"
-    );
     params.shading_weight = a.shading_weight;
     params.gyro_arw_deg_sqrt_s = a.gyro_arw / 60.0;
     params.gyro_bias_deg_s = a.gyro_bias / 3600.0;

@@ -146,6 +146,9 @@ fn bad_inputs_are_named() {
         ("--gyro-arw", "0"),
         ("--gyro-bias", "nan"),
         ("--matches-dir", file.to_str().unwrap()),
+        ("--shading-weight", "1.5"),
+        ("--sun", "250"),
+        ("--sun", "250,95"),
     ] {
         let o = run(&["navigate", "--db", "x", "--flight", "y", "--out", "z", opt, value]);
         assert!(!o.status.success(), "{opt} {value} accepted");

@@ -808,4 +808,33 @@ fn navigate_a_lit_database_through_the_server() {
     let (a, b) = (poses_without_time(&by_db), poses_without_time(&by_http));
     assert_eq!(a, b, "poses through the server differ from the database's");
     assert!(a.iter().skip(1).filter(|l| l.contains(",fix,")).count() >= a.len() * 9 / 10, "{a:?}");
+
+    // Coverage counts each landmark once, from the file and through the
+    // server (which reads the database's suns once, at load), as the
+    // database with one lighting (the fixture's, built alike) does.
+    let truth = std::fs::read_to_string(fixture.flight.join("truth.csv")).unwrap();
+    let v: Vec<f64> = truth.lines().nth(1).unwrap().split(',').map(|x| x.parse().unwrap()).collect();
+    let plan = root.join("lit-plan.json");
+    std::fs::write(
+        &plan,
+        format!(
+            r#"{{"camera": {{"width": 320, "height": 240, "hfov_deg": 40}},
+                "waypoints": [{{"lat_deg": {}, "lon_deg": {}, "h_m": {}}}],
+                "attitude": {{"tilt_deg": 0, "azimuth_deg": 0}}}}"#,
+            v[1], v[2], v[3]
+        ),
+    )
+    .unwrap();
+    let in_view = |source: &[&str]| -> Vec<u64> {
+        let mut args = vec!["coverage", "--plan", plan.to_str().unwrap()];
+        args.extend_from_slice(source);
+        let o = run(&args);
+        assert!(o.status.success(), "coverage {source:?} failed: {}", stderr(&o));
+        let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        j["points"].as_array().unwrap().iter().map(|p| p["landmarks"].as_u64().unwrap()).collect()
+    };
+    let unlit = in_view(&["--db", fixture.db.to_str().unwrap()]);
+    assert!(unlit.iter().all(|&n| n > 10), "{unlit:?}");
+    assert_eq!(in_view(&["--db", &s(&db)]), unlit);
+    assert_eq!(in_view(&["--server", &server.url]), unlit);
 }

@@ -71,12 +71,7 @@ impl SunGrid {
 
     /// The factor at a point, bilinear; 1 off the grid.
     pub fn factor_at(&self, lon_deg: f64, lat_deg: f64) -> f32 {
-        let f = self.factor.bilinear(lat_deg, lon_deg);
-        if f.is_nan() {
-            1.0
-        } else {
-            f as f32
-        }
+        self.factor.bilinear_or(lat_deg, lon_deg, 1.0)
     }
 
     /// `t`'s pixels as they look under this sun: each grey level times the
@@ -122,14 +117,11 @@ pub fn shading_share(grid: &HeightGrid, mean_grey: f64, contrast_std: f64, suns:
             [-gx / len, -gy / len, 1.0 / len]
         })
         .collect();
-    // Per sun: its direction and the factor's affine form a + b max(0, n.s).
     let spread = |sun: &SunLight| {
-        let d = sun.direction_enu();
-        let a = sun.ambient.clamp(0.0, 1.0);
-        let norm = 1.0 / (a + (1.0 - a) * d[2]);
+        let shading = sun.shading();
         let (mut sum, mut sum2) = (0.0, 0.0);
         for nv in &normals {
-            let f = (a + (1.0 - a) * (nv[0] * d[0] + nv[1] * d[1] + nv[2] * d[2]).max(0.0)) * norm;
+            let f = shading.factor(*nv, 1.0);
             sum += f;
             sum2 += f * f;
         }

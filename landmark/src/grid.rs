@@ -79,6 +79,25 @@ impl LatLonGrid<f32> {
             (v[i] as f64, v[i + 1] as f64, v[i + self.cols] as f64, v[i + self.cols + 1] as f64);
         (a * (1.0 - tc) + b * tc) * (1.0 - tr) + (cc * (1.0 - tc) + d * tc) * tr
     }
+
+    /// [`Self::bilinear_at`], or `default` where that is NaN (off the grid,
+    /// next to a NaN node).
+    #[inline(always)]
+    pub fn bilinear_at_or(&self, r: f64, c: f64, default: f32) -> f32 {
+        let v = self.bilinear_at(r, c);
+        if v.is_nan() {
+            default
+        } else {
+            v as f32
+        }
+    }
+
+    /// [`Self::bilinear`], or `default` where that is NaN.
+    #[inline(always)]
+    pub fn bilinear_or(&self, lat_deg: f64, lon_deg: f64, default: f32) -> f32 {
+        let (r, c) = self.position(lat_deg, lon_deg);
+        self.bilinear_at_or(r, c, default)
+    }
 }
 
 impl LatLonGrid<[f64; 2]> {

@@ -67,13 +67,31 @@ impl SunLight {
         (a[0] * b[0] + a[1] * b[1] + a[2] * b[2]).clamp(-1.0, 1.0).acos().to_degrees()
     }
 
-    /// The factor of a surface with upward normal `n_enu` (unit) in the sun
-    /// (`lit` = 1) or in cast shadow (`lit` = 0); see the module's formula.
-    pub fn factor(&self, n_enu: [f64; 3], lit: f64) -> f64 {
+    /// The sun's shading, with its direction and normalisation worked out
+    /// once (for many normals).
+    pub fn shading(&self) -> Shading {
         let s = self.direction_enu();
         let a = self.ambient.clamp(0.0, 1.0);
-        let ns = n_enu[0] * s[0] + n_enu[1] * s[1] + n_enu[2] * s[2];
-        (a + (1.0 - a) * ns.max(0.0) * lit) / (a + (1.0 - a) * s[2])
+        Shading { s, a, flat: a + (1.0 - a) * s[2] }
+    }
+}
+
+/// A sun's brightness factor as a function of the surface normal.
+#[derive(Clone, Copy, Debug)]
+pub struct Shading {
+    /// Unit vector toward the sun (ENU), diffuse share, flat ground's light.
+    s: [f64; 3],
+    a: f64,
+    flat: f64,
+}
+
+impl Shading {
+    /// The factor of a surface with upward normal `n_enu` (unit) in the sun
+    /// (`lit` = 1) or in cast shadow (`lit` = 0); see the module's formula.
+    #[inline]
+    pub fn factor(&self, n_enu: [f64; 3], lit: f64) -> f64 {
+        let ns = n_enu[0] * self.s[0] + n_enu[1] * self.s[1] + n_enu[2] * self.s[2];
+        (self.a + (1.0 - self.a) * ns.max(0.0) * lit) / self.flat
     }
 }
 
@@ -90,6 +108,7 @@ pub fn illumination(g: &LatLonGrid<f32>, sun: &SunLight) -> Vec<f32> {
     // A sun at the zenith casts no shadow; the cap keeps the ramp finite.
     let tan_e = sun.elevation_deg.to_radians().tan().min(1e4);
     let mut lit = shadow_sweep(g, &dx, &dy, ue, un, tan_e);
+    let shading = sun.shading();
     let h = &g.values;
     let at = |r: usize, c: usize| h[r * cols + c];
     for (r, row) in lit.chunks_mut(cols).enumerate() {
@@ -106,7 +125,7 @@ pub fn illumination(g: &LatLonGrid<f32>, sun: &SunLight) -> Vec<f32> {
             let gx = slope(west, hc, east, dx[r]);
             let gy = slope(south, hc, north, dy[r]);
             let len = (1.0 + gx * gx + gy * gy).sqrt();
-            *out = sun.factor([-gx / len, -gy / len, 1.0 / len], *out as f64) as f32;
+            *out = shading.factor([-gx / len, -gy / len, 1.0 / len], *out as f64) as f32;
         }
     }
     lit

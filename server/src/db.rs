@@ -14,6 +14,7 @@ use std::time::Instant;
 use serde::Serialize;
 use tokio::sync::Semaphore;
 use tracing::info;
+use trn_landmark::lighting::SunLight;
 use trn_landmark::GeoBox;
 use trn_landmark::Template;
 use trn_navigator::source::{LandmarkSource, SourceError};
@@ -52,6 +53,8 @@ pub struct Database {
     conns: Mutex<Vec<LandmarkDb>>,
     permits: Arc<Semaphore>,
     catalogue: Option<Catalogue>,
+    /// The suns its templates are lit for (metadata `suns`), read once.
+    suns: Vec<SunLight>,
     pub info: Info,
     /// (level, GSD) of every level, finest first.
     pub levels: Vec<DbLevel>,
@@ -120,6 +123,7 @@ impl Database {
                 None
             }
         };
+        let suns = LandmarkSource::suns(&first).map_err(|e| ServerError::Other(e.0))?;
         let mut conns = Vec::with_capacity(connections.max(1));
         for _ in 1..connections.max(1) {
             conns.push(first.reopen()?);
@@ -140,6 +144,7 @@ impl Database {
             permits: Arc::new(Semaphore::new(conns.len())),
             conns: Mutex::new(conns),
             catalogue,
+            suns,
             levels: DbLevel::of(&levels_info),
             etag: format!("W/\"{database_id}\""),
             info,
@@ -169,7 +174,7 @@ impl Database {
             let _permit = permit;
             let conn =
                 Checkout::take(&me).ok_or_else(|| ApiError::internal("no free database connection"))?;
-            f(Store { conn: conn.db(), catalogue: me.catalogue.as_ref() })
+            f(Store { conn: conn.db(), catalogue: me.catalogue.as_ref(), suns: &me.suns })
         })
         .await
         .map_err(|e| ApiError::internal(format!("database task failed: {e}")))?
@@ -181,6 +186,7 @@ impl Database {
 pub struct Store<'a> {
     pub conn: &'a LandmarkDb,
     pub catalogue: Option<&'a Catalogue>,
+    pub suns: &'a [SunLight],
 }
 
 impl Store<'_> {
@@ -207,8 +213,8 @@ impl LandmarkSource for Store<'_> {
             .map_err(|e| SourceError(e.to_string()))
     }
 
-    fn suns(&self) -> Result<Vec<trn_landmark::lighting::SunLight>, SourceError> {
-        LandmarkSource::suns(self.conn)
+    fn suns(&self) -> Result<Vec<SunLight>, SourceError> {
+        Ok(self.suns.to_vec())
     }
 
     fn query_lit(&self, bbox: &GeoBox, level: u8, lighting: u8) -> Result<Vec<Template>, SourceError> {

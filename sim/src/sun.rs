@@ -29,19 +29,13 @@ impl Illumination {
     /// The factor at a fractional grid position (row, col); 1 outside the grid.
     #[inline]
     pub fn at(&self, row: f64, col: f64) -> f32 {
-        let f = self.factor.bilinear_at(row, col);
-        if f.is_nan() {
-            1.0
-        } else {
-            f as f32
-        }
+        self.factor.bilinear_at_or(row, col, 1.0)
     }
 
     /// The factor at a point; 1 outside the grid.
     #[inline]
     pub fn at_latlon(&self, lat_deg: f64, lon_deg: f64) -> f32 {
-        let (r, c) = self.factor.position(lat_deg, lon_deg);
-        self.at(r, c)
+        self.factor.bilinear_or(lat_deg, lon_deg, 1.0)
     }
 }
 

@@ -1164,9 +1164,14 @@ fn tile_templates(
         };
         match got {
             Ok(mut t) => {
+                // Exact integer sums of the bytes, then the moments.
                 let n = t.pixels.len().max(1) as f64;
-                let mean = t.pixels.iter().map(|&v| v as f64).sum::<f64>() / n;
-                let std = (t.pixels.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>() / n).sqrt();
+                let (sum, sum_sq) = t
+                    .pixels
+                    .iter()
+                    .fold((0u64, 0u64), |(s, q), &v| (s + v as u64, q + (v as u64) * (v as u64)));
+                let mean = sum as f64 / n;
+                let std = (sum_sq as f64 / n - mean * mean).max(0.0).sqrt();
                 t.quality.shading_share =
                     lighting::shading_share(&t.terrain.height_grid, mean, std, share_suns);
                 if opts.max_shading_share.is_some_and(|m| t.quality.shading_share as f64 > m) {

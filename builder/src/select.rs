@@ -492,28 +492,29 @@ pub fn second_peak(img: &LumWindow, sums: &WindowSums, cx: usize, cy: usize, p: 
         return 1.0;
     };
     let r = p.search_radius as isize;
-    let side = (2 * r + 1) as usize;
+    // The surface with a one-cell frame (marked as already flooded), so the
+    // flood below needs no bounds checks.
+    let side = (2 * r + 3) as usize;
     let mut surface = vec![f32::NAN; side * side];
+    let mut lobe = vec![true; side * side];
     for dy in -r..=r {
         for dx in -r..=r {
+            let i = (dy + r + 1) as usize * side + (dx + r + 1) as usize;
+            lobe[i] = false;
             if let Some(v) = patch.ncc(img, sums, dx, dy) {
-                surface[(dy + r) as usize * side + (dx + r) as usize] = v;
+                surface[i] = v;
             }
         }
     }
     // Flood the main lobe downhill from the centre.
-    let mut lobe = vec![false; side * side];
-    let centre = r as usize * side + r as usize;
+    let centre = (r + 1) as usize * side + (r + 1) as usize;
+    let s = side as isize;
+    let steps = [-s - 1, -s, -s + 1, -1, 1, s - 1, s, s + 1];
     let mut stack = vec![centre];
     lobe[centre] = true;
     while let Some(i) = stack.pop() {
-        let (x, y) = ((i % side) as isize, (i / side) as isize);
-        for (ddx, ddy) in [(-1, -1), (0, -1), (1, -1), (-1, 0), (1, 0), (-1, 1), (0, 1), (1, 1)] {
-            let (nx, ny) = (x + ddx, y + ddy);
-            if nx < 0 || ny < 0 || nx >= side as isize || ny >= side as isize {
-                continue;
-            }
-            let j = ny as usize * side + nx as usize;
+        for d in steps {
+            let j = (i as isize + d) as usize;
             if !lobe[j] && surface[j] <= surface[i] {
                 lobe[j] = true;
                 stack.push(j);

@@ -42,11 +42,36 @@ impl CameraSpan {
     }
 }
 
-/// The finest- and coarsest-resolution cameras of a default database.
+/// The finest- and coarsest-resolution cameras of a default database; it
+/// serves every camera between them: widths from the coarsest's to the
+/// finest's (4:3 images), fields of view and heights in the same way.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
 pub struct Envelope {
     pub finest_camera: CameraSpan,
     pub coarsest_camera: CameraSpan,
+}
+
+impl Envelope {
+    /// The narrowest ground (m across) that any camera of the envelope with a
+    /// ground resolution of `gsd_m` m per pixel sees straight down: the
+    /// narrowest field at the lowest height, or the fewest pixels.
+    pub fn min_ground_width_m(&self, gsd_m: f64) -> f64 {
+        let f = &self.finest_camera;
+        let narrowest = 2.0 * f.altitude_m * (f.hfov_deg.to_radians() / 2.0).tan();
+        narrowest.max(self.coarsest_camera.width_px as f64 * gsd_m)
+    }
+
+    /// Cell side (share of a template footprint) for a level of footprint
+    /// `footprint_m`: one footprint, or more (at most 2) while every camera of
+    /// the envelope that picks the level still sees [`CELLS_IN_VIEW`] cells
+    /// where its templates span their widest (`TARGET·√2` px; fewer ground
+    /// metres in view than anywhere else the level is picked).
+    pub fn spacing_share(&self, footprint_m: f64) -> f64 {
+        let gsd = footprint_m / (TARGET_SPAN_PX * std::f64::consts::SQRT_2);
+        let across = self.min_ground_width_m(gsd) / footprint_m;
+        let cells_at_one = across * across * 0.75;
+        (cells_at_one / CELLS_IN_VIEW).sqrt().clamp(1.0, 2.0)
+    }
 }
 
 /// A mission: one camera, flown between two heights above the terrain,
@@ -142,7 +167,7 @@ impl LevelSpec {
 /// templates for cameras finer than the ortho), else `max_size`; each level
 /// cut at the finest pyramid GSD `base * 2^q` that keeps it within
 /// `max_size` pixels. The finest level is the coarsest one whose footprint
-/// still spans at most `TARGET·√2` pixels at `range.finest_m` (or the
+/// still spans at most [`MAX_SPAN_PX`] pixels at `range.finest_m` (or the
 /// smallest footprint the ortho allows: `s0` native pixels); levels are
 /// added until one spans at least `TARGET/√2` pixels at `range.coarsest_m`,
 /// or to `levels` when given. At most 12 levels.
@@ -156,7 +181,7 @@ pub fn ladder(
     let s0 = if max_size / 2 >= min_size { max_size / 2 } else { max_size };
     let f_unit = s0 as f64 * base_gsd_m;
     let sqrt2 = std::f64::consts::SQRT_2;
-    let j0 = ((TARGET_SPAN_PX * sqrt2 * range.finest_m / f_unit).log2() + 1e-9).floor().max(0.0) as u32;
+    let j0 = ((MAX_SPAN_PX * range.finest_m / f_unit).log2() + 1e-9).floor().max(0.0) as u32;
     let count = levels.map(u32::from).unwrap_or_else(|| {
         let mut n = 1;
         while n < 12 && f_unit * 2f64.powi((j0 + n - 1) as i32) < TARGET_SPAN_PX / sqrt2 * range.coarsest_m {
@@ -186,8 +211,11 @@ pub fn ladder(
 /// camera resolves finer than the ortho can serve (its templates then span
 /// `footprint / range.finest_m` px, and fewer fit in the image). With a
 /// mission: what puts [`CELLS_IN_VIEW`] cells in its camera's view there
-/// ([`Mission::spacing_share`]). Without one: one footprint, and half of one
-/// for a finest level that cannot serve the finest resolution asked for.
+/// ([`Mission::spacing_share`]). Without one: half a footprint for a finest
+/// level that spans more than [`MAX_SPAN_PX`] at the finest resolution asked
+/// for (an ortho too coarse to serve it), else what the default envelope
+/// needs ([`Envelope::spacing_share`]: one footprint, more for small
+/// footprints that only large images see).
 pub fn spacing_shares(levels: &[LevelSpec], range: &GsdRange, mission: Option<&Mission>) -> Vec<f64> {
     let widest = TARGET_SPAN_PX * std::f64::consts::SQRT_2;
     levels
@@ -197,8 +225,8 @@ pub fn spacing_shares(levels: &[LevelSpec], range: &GsdRange, mission: Option<&M
             let span = if k == 0 { (l.footprint_m() / range.finest_m).max(widest) } else { widest };
             match mission {
                 Some(m) => m.spacing_share(span),
-                None if span > widest * 1.001 => 0.5,
-                None => 1.0,
+                None if span > MAX_SPAN_PX * 1.001 => 0.5,
+                None => DEFAULT_ENVELOPE.spacing_share(l.footprint_m()),
             }
         })
         .collect()
@@ -229,6 +257,13 @@ mod tests {
         // The coarsest camera: the top level spans >= TARGET/sqrt2 px.
         assert!(l[4].footprint_m() / r.coarsest_m >= TARGET_SPAN_PX / 2f64.sqrt());
         assert!(l[3].footprint_m() / r.coarsest_m < TARGET_SPAN_PX / 2f64.sqrt());
+        // A 1 m ortho: 32 px at 1 m (32 m) already spans at most 48 px at the
+        // finest 0.69 m/px, so no 16-px level below it.
+        let l = ladder(1.0, 16, 32, &r, None);
+        assert_eq!((l[0].gsd_m, l[0].size_px), (1.0, 32));
+        assert!(l[0].footprint_m() / r.finest_m <= MAX_SPAN_PX);
+        assert!(l[0].footprint_m() / 2.0 / r.finest_m < TARGET_SPAN_PX);
+        assert_eq!((l.last().unwrap().gsd_m, l.len()), (256.0, 9));
     }
 
     #[test]
@@ -282,8 +317,9 @@ mod tests {
         assert_eq!(got, [(2.0, 32), (4.0, 32), (8.0, 32)]);
         // Half the largest size is below the smallest: one size.
         assert!(ladder(2.0, 12, 16, &r, Some(2)).iter().all(|l| l.size_px == 16));
-        // 24 px: 12-px native templates first.
-        let l = ladder(2.0, 12, 24, &r, Some(3));
+        // 24 px: 12-px native templates first, for a camera finer than the ortho.
+        let fine = GsdRange { finest_m: 0.5, coarsest_m: 1.0 };
+        let l = ladder(2.0, 12, 24, &fine, Some(3));
         assert_eq!(
             l.iter().map(|l| (l.gsd_m, l.size_px)).collect::<Vec<_>>(),
             [(2.0, 12), (2.0, 24), (4.0, 24)]
@@ -328,8 +364,61 @@ mod tests {
         // Without a mission: one footprint, half one where the ortho is too coarse.
         let env = GsdRange::of_envelope(&DEFAULT_ENVELOPE);
         let l = ladder(30.0, 12, 32, &env, None);
-        assert_eq!(spacing_shares(&l, &env, None)[..2], [0.5, 1.0]);
+        let s = spacing_shares(&l, &env, None);
+        assert_eq!(s[0], 0.5);
+        assert!(s[1..].iter().all(|&x| x == 1.0), "{s:?}");
+        // Sub-metre imagery: 32 m footprints are only picked by cameras that see
+        // at least 705 m across (20 degrees from 2 km): 22 x 16.5 footprints,
+        // so cells of 1.74 footprints still give 120.
         let l = ladder(0.5, 12, 32, &env, None);
-        assert!(spacing_shares(&l, &env, None).iter().all(|&x| x == 1.0));
+        let s = spacing_shares(&l, &env, None);
+        assert!((l[0].footprint_m() - 32.0).abs() < 1e-9 && (s[0] - 1.742).abs() < 1e-3, "{s:?}");
+        assert!(s[1..].iter().all(|&x| x == 1.0), "{s:?}");
+    }
+
+    /// Brute force over the default envelope's cameras: the cells in view of
+    /// the level a navigator picks never drop below [`CELLS_IN_VIEW`], nor
+    /// below what one-footprint cells give where those give fewer.
+    #[test]
+    fn envelope_spacing_keeps_every_camera_in_cells() {
+        let env = GsdRange::of_envelope(&DEFAULT_ENVELOPE);
+        for base in [0.3, 0.5, 1.0, 2.0, 5.0, 30.0] {
+            let l = ladder(base, 16, 32, &env, None);
+            let shares = spacing_shares(&l, &env, None);
+            let mut checked = 0;
+            for width_px in [160u32, 200, 320, 480, 640, 800, 1024] {
+                for hfov_deg in [20.0, 25.0, 30.0, 40.0, 50.0, 60.0] {
+                    for altitude_m in [2_000.0, 2_500.0, 4_000.0, 8_000.0, 15_000.0, 40_000.0] {
+                        let cam = CameraSpan { width_px, hfov_deg, altitude_m };
+                        let g = cam.nadir_gsd_m();
+                        let (k, best) = l
+                            .iter()
+                            .enumerate()
+                            .min_by(|a, b| {
+                                let m = |x: &LevelSpec| (x.footprint_m() / g / TARGET_SPAN_PX).ln().abs();
+                                m(a.1).total_cmp(&m(b.1))
+                            })
+                            .unwrap();
+                        let span = best.footprint_m() / g;
+                        if span > MAX_SPAN_PX {
+                            continue; // finer than the ortho serves
+                        }
+                        let cells = |share: f64| {
+                            let across = width_px as f64 / (span * share);
+                            across * across * 0.75
+                        };
+                        let want = cells(1.0).min(CELLS_IN_VIEW) * 0.999;
+                        assert!(
+                            cells(shares[k]) >= want,
+                            "base {base} {cam:?}: level {k} share {} -> {} cells",
+                            shares[k],
+                            cells(shares[k])
+                        );
+                        checked += 1;
+                    }
+                }
+            }
+            assert!(checked > 100, "{checked}");
+        }
     }
 }

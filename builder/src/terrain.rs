@@ -266,8 +266,9 @@ struct PatchPart<'a> {
 struct TransformGrid {
     lon0: f64,
     lat0: f64,
-    dlon: f64,
-    dlat: f64,
+    /// Grid nodes per degree of longitude and of latitude.
+    per_dlon: f64,
+    per_dlat: f64,
     n: usize,
     cols: Vec<f64>,
     rows: Vec<f64>,
@@ -275,8 +276,8 @@ struct TransformGrid {
 
 impl TransformGrid {
     fn at(&self, lon: f64, lat: f64) -> Option<(f64, f64)> {
-        let fx = (lon - self.lon0) / self.dlon;
-        let fy = (lat - self.lat0) / self.dlat;
+        let fx = (lon - self.lon0) * self.per_dlon;
+        let fy = (lat - self.lat0) * self.per_dlat;
         let last = (self.n - 1) as f64;
         if !(fx >= -1e-9 && fy >= -1e-9 && fx <= last + 1e-9 && fy <= last + 1e-9) {
             return None;
@@ -336,8 +337,8 @@ impl DemSampler {
             let grid = TransformGrid {
                 lon0: bbox.min_lon_deg,
                 lat0: bbox.min_lat_deg,
-                dlon,
-                dlat,
+                per_dlon: 1.0 / dlon,
+                per_dlat: 1.0 / dlat,
                 n: N,
                 cols,
                 rows,
@@ -352,6 +353,35 @@ impl PatchPart<'_> {
     fn height(&self, lon: f64, lat: f64) -> Option<f64> {
         let (c, r) = self.grid.at(lon, lat)?;
         let spec = self.spec;
+        // The usual case: all four neighbours inside the window (so inside the
+        // raster, no clamping) and valid. The same arithmetic as below.
+        // Truncation is floor here (non-negative), without a libm call.
+        let (fc, fr) = ((c.max(0.0) as i64) as f64, (r.max(0.0) as i64) as f64);
+        let (ic, ir) = (fc as isize - self.c0, fr as isize - self.r0);
+        if c >= 0.0
+            && r >= 0.0
+            && ic >= 0
+            && ir >= 0
+            && ((ic + 1) as usize) < self.w
+            && ((ir + 1) as usize) < self.h
+        {
+            let i = ir as usize * self.w + ic as usize;
+            let (a, b) = (&self.heights[i..i + 2], &self.heights[i + self.w..i + self.w + 2]);
+            if let (Some(a0), Some(a1), Some(b0), Some(b1)) = (
+                valid_height(spec, a[0]),
+                valid_height(spec, a[1]),
+                valid_height(spec, b[0]),
+                valid_height(spec, b[1]),
+            ) {
+                let (tc, tr) = (c - fc, r - fr);
+                let v = (a0 * (1.0 - tc) + a1 * tc) * (1.0 - tr) + (b0 * (1.0 - tc) + b1 * tc) * tr;
+                let mut hgt = v * spec.to_metres;
+                if let Some(g) = &spec.geoid {
+                    hgt += g.undulation_at(lat, lon)?;
+                }
+                return Some(hgt);
+            }
+        }
         let (w, h) = (spec.info.width as f64, spec.info.height as f64);
         if !(c >= -0.5 && r >= -0.5 && c <= w - 0.5 && r <= h - 0.5) {
             return None;

@@ -271,12 +271,25 @@ struct NavigateArgs {
     /// Fewer RANSAC inliers reject the fix.
     #[arg(long, default_value_t = 8)]
     min_inliers: usize,
-    /// A height change between accepted fixes above this rejects the fix (m).
+    /// Inliers a smaller share of the correlation matches than this reject the
+    /// fix (a chance consensus of wrong matches).
+    #[arg(long, default_value_t = 0.3, value_parser = parse_share)]
+    min_inlier_share: f64,
+    /// A fix whose height is farther than this from the predicted one (the
+    /// last fix carried by the vertical velocity) rejects it (m); the gate
+    /// widens by 3 sigma of the vertical velocity per second since that fix.
     #[arg(long, default_value_t = 450.0)]
     max_height_jump: f64,
     /// Landmarks correlated per image.
     #[arg(long, default_value_t = 300)]
     max_landmarks: usize,
+    /// Position uncertainty of init.json (m, 1 sigma): the first search's radius
+    /// and the first fix's height check.
+    #[arg(long, default_value_t = 300.0)]
+    init_sigma_m: f64,
+    /// Attitude uncertainty of init.json (deg, 1 sigma).
+    #[arg(long, default_value_t = 2.0)]
+    init_sigma_deg: f64,
     /// Gyro angle random walk assumed by the attitude filter (deg/sqrt(h), 1 sigma).
     #[arg(long, default_value_t = 0.3)]
     gyro_arw: f64,
@@ -561,6 +574,14 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
     anyhow::ensure!(a.min_inliers >= 4, "invalid option --min-inliers: must be at least 4");
     anyhow::ensure!(a.max_landmarks >= 4, "invalid option --max-landmarks: must be at least 4");
     anyhow::ensure!(
+        a.init_sigma_m.is_finite() && a.init_sigma_m > 0.0,
+        "invalid option --init-sigma-m: must be metres > 0"
+    );
+    anyhow::ensure!(
+        a.init_sigma_deg.is_finite() && a.init_sigma_deg > 0.0 && a.init_sigma_deg <= 90.0,
+        "invalid option --init-sigma-deg: must be degrees in (0, 90]"
+    );
+    anyhow::ensure!(
         a.gyro_arw.is_finite() && a.gyro_arw > 0.0,
         "invalid option --gyro-arw: must be deg/sqrt(h) > 0"
     );
@@ -581,8 +602,11 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
     let mut params = trn_navigator::NavParams { use_gyro: !a.no_gyro, ..Default::default() };
     params.alpha_max_deg = a.alpha_max;
     params.min_inliers = a.min_inliers;
+    params.min_inlier_share = a.min_inlier_share;
     params.max_height_jump_m = a.max_height_jump;
     params.max_landmarks = a.max_landmarks;
+    params.init_sigma_m = a.init_sigma_m;
+    params.init_sigma_deg = a.init_sigma_deg;
     params.sun = a.sun;
     params.shading_weight = a.shading_weight;
     params.gyro_arw_deg_sqrt_s = a.gyro_arw / 60.0;
@@ -604,10 +628,13 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
     trn_flight::write_pose_covariances(&cov_path, &run.covariances)?;
     let report = run.report;
     tracing::info!(
-        "{} of {} frames processed, {} fixes, median {:.1} ms per frame; wrote {}, {} and {}",
+        "{} of {} frames processed, {} fixes ({} rejected for too few inliers, {} for too small a share of inliers, {} for their height), median {:.1} ms per frame; wrote {}, {} and {}",
         report.processed,
         report.frames,
         report.fixes,
+        report.rejected.few_inliers,
+        report.rejected.inlier_share,
+        report.rejected.height,
         report.median_ms,
         a.out.display(),
         matches_path.display(),

@@ -143,6 +143,9 @@ fn bad_inputs_are_named() {
         ("--alpha-max", "90"),
         ("--min-inliers", "3"),
         ("--max-landmarks", "2"),
+        ("--init-sigma-m", "0"),
+        ("--min-inlier-share", "1.5"),
+        ("--init-sigma-deg", "inf"),
         ("--gyro-arw", "0"),
         ("--gyro-bias", "nan"),
         ("--matches-dir", file.to_str().unwrap()),
@@ -170,4 +173,96 @@ fn bad_inputs_are_named() {
     assert!(!o.status.success());
     assert!(stderr(&o).contains("--relief"), "{}", stderr(&o));
     assert!(!ortho.exists() && !dem.exists());
+}
+
+/// Copies a flight folder (files and images) so a test can change it.
+fn copy_flight(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to.join("images")).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        if e.file_type().unwrap().is_file() {
+            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
+        }
+    }
+    for e in std::fs::read_dir(from.join("images")).unwrap() {
+        let e = e.unwrap();
+        std::fs::copy(e.path(), to.join("images").join(e.file_name())).unwrap();
+    }
+}
+
+/// (t, status, inliers) of each poses.csv row.
+fn rows(poses: &Path) -> Vec<(f64, String, u32)> {
+    std::fs::read_to_string(poses)
+        .unwrap()
+        .lines()
+        .skip(1)
+        .map(|l| {
+            let f: Vec<&str> = l.split(',').collect();
+            (f[0].parse().unwrap(), f[8].to_string(), f[9].parse().unwrap())
+        })
+        .collect()
+}
+
+#[test]
+fn rejected_solutions_are_counted_and_the_next_image_is_processed_at_once() {
+    let s = nav_fixture();
+    let dir = s.root().join("reject");
+    std::fs::create_dir_all(&dir).unwrap();
+    // No solution can have 10 000 inliers: every one is rejected, so at 2 Hz
+    // every image is processed anyway (the reject-and-reprocess path).
+    let poses = dir.join("poses.csv");
+    let o = navigate(&s, &poses, &["--rate", "2", "--min-inliers", "10000"]);
+    assert!(o.status.success(), "navigate failed: {}", stderr(&o));
+    let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let r = rows(&poses);
+    let frames = std::fs::read_to_string(s.flight.join("frames.csv")).unwrap().lines().count() - 1;
+    assert_eq!(r.len(), frames, "every frame processed after a rejection");
+    assert!(r.iter().all(|(_, st, _)| st == "propagated"));
+    // The rejected solutions' inliers are reported, and counted by reason.
+    let with_solution = r.iter().filter(|(_, _, n)| *n > 0).count();
+    assert!(with_solution >= frames - 1, "{r:?}");
+    assert_eq!(report["rejected"]["few_inliers"].as_u64().unwrap() as usize, with_solution);
+    assert_eq!(report["rejected"]["height"].as_u64().unwrap(), 0);
+    assert_eq!(report["fixes"].as_u64().unwrap(), 0);
+}
+
+#[test]
+fn the_first_fix_is_checked_and_the_height_gate_never_locks_out() {
+    let s = nav_fixture();
+    let dir = s.root().join("high-init");
+    let flight = dir.join("flight");
+    copy_flight(&s.flight, &flight);
+    // The initial guess 400 m too high (370 m above the truth with the
+    // scenario's own 30 m error), said to be good to 100 m: the first
+    // solutions (at the true height, 70-77 inliers) are farther from it than
+    // the 30 m limit plus three sigmas (330 m); the gate then widens by 3 x
+    // 20 m/s per second until they pass, after about 0.7 s.
+    let init_path = flight.join("init.json");
+    let mut init: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&init_path).unwrap()).unwrap();
+    let h = init["h"].as_f64().unwrap();
+    init["h"] = serde_json::json!(h + 400.0);
+    std::fs::write(&init_path, init.to_string()).unwrap();
+    let poses = dir.join("poses.csv");
+    let s2 = NavFixture { dir: tempfile::tempdir().unwrap(), db: s.db.clone(), flight: flight.clone() };
+    let o = navigate(&s2, &poses, &["--max-height-jump", "30", "--init-sigma-m", "100"]);
+    assert!(o.status.success(), "navigate failed: {}", stderr(&o));
+    let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let r = rows(&poses);
+    println!("{r:?}\n{report}");
+    // Solutions with enough inliers were refused for their height while the
+    // gate was narrow (the first one checked against the initial guess), and
+    // the first frames carry the guess.
+    assert!(report["rejected"]["height"].as_u64().unwrap() >= 1, "{report}");
+    assert_eq!(r[0].1, "propagated");
+    assert!(r[0].2 > 0, "{r:?}");
+    // Nothing is accepted before the widening gate can admit the true height
+    // (a solution that far off is refused), and the last frames all fix.
+    let first_fix = r.iter().position(|(_, st, _)| st == "fix").expect("a fix after the rejections");
+    assert!(r[first_fix].0 > 0.5, "first fix at {} s", r[first_fix].0);
+    assert!(r[r.len() - 3..].iter().all(|(_, st, _)| st == "fix"), "{r:?}");
+    // Against the truth, the fixes are at the true height (the guess was not).
+    let report = evaluate(&s2, &poses);
+    let mean = report["runs"][0]["fix_errors"]["pos_m"]["mean"].as_f64().unwrap();
+    assert!(mean < 50.0, "mean fix error {mean} m");
 }

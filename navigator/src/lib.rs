@@ -30,7 +30,7 @@ use ::image::ImageEncoder;
 use trn_flight::{FixStatus, Flight, MatchRecord, NavRecord, PoseCovariance};
 
 pub use http_source::HttpSource;
-pub use nav::{NavParams, Navigator};
+pub use nav::{HeightGate, NavParams, Navigator, Rejection};
 pub use source::{DbSource, LandmarkSource, SourceError};
 
 /// Errors of a navigation run; each names the file at fault.
@@ -63,7 +63,17 @@ pub struct RunReport {
     pub frames: usize,
     pub processed: usize,
     pub fixes: usize,
+    /// Solutions rejected, by reason (their frames are `propagated`).
+    pub rejected: RejectedCounts,
     pub median_ms: f64,
+}
+
+/// Rejected solutions of a run, by [`Rejection`].
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct RejectedCounts {
+    pub few_inliers: usize,
+    pub inlier_share: usize,
+    pub height: usize,
 }
 
 /// Reads a flight image as grey levels (RGB by Rec. 601 luma).
@@ -114,6 +124,7 @@ pub fn run_flight(
     let mut matches = Vec::new();
     let mut covariances = Vec::new();
     let mut next_due = f64::NEG_INFINITY;
+    let mut rejected = RejectedCounts::default();
     for (i, frame) in flight.frames.iter().enumerate() {
         progress(i);
         // Rate downsampling, except right after a rejected fix.
@@ -145,6 +156,12 @@ pub fn run_flight(
             (FixStatus::Fix, Some(rate)) => frame.t + 1.0 / rate,
             _ => f64::NEG_INFINITY,
         };
+        match r.rejection {
+            Some(Rejection::FewInliers { .. }) => rejected.few_inliers += 1,
+            Some(Rejection::InlierShare { .. }) => rejected.inlier_share += 1,
+            Some(Rejection::Height { .. }) => rejected.height += 1,
+            None => {}
+        }
         records.push(r.record);
         matches.extend(r.matches);
         covariances.extend(r.covariance);
@@ -155,6 +172,7 @@ pub fn run_flight(
         frames: flight.frames.len(),
         processed: records.len(),
         fixes: records.iter().filter(|r| r.status == FixStatus::Fix).count(),
+        rejected,
         median_ms: ms.get(ms.len() / 2).copied().unwrap_or(0.0),
     };
     Ok(RunOutput { records, matches, covariances, report })

@@ -32,7 +32,14 @@ pub struct NavParams {
     pub horizon_step_px: f64,
     /// Fewer inliers reject the fix.
     pub min_inliers: usize,
-    /// A height change between accepted fixes above this rejects the fix (m).
+    /// A smaller share of the correlation matches among the inliers rejects
+    /// the fix: a chance consensus of wrong matches (measured: 8-12 of 40-90
+    /// when the guess is 10 km off) rather than the landmarks (15 of 18 to
+    /// 200 of 210 on the realistic flights).
+    pub min_inlier_share: f64,
+    /// A fix whose height is farther than this from the predicted one (the
+    /// last accepted fix carried by the vertical velocity), plus what the
+    /// velocity's error allows since then, is rejected (m); see [`HeightGate`].
     pub max_height_jump_m: f64,
     /// Landmarks correlated per frame (spread over the image).
     pub max_landmarks: usize,
@@ -71,6 +78,7 @@ impl Default for NavParams {
             alpha_max_deg: 75.0,
             horizon_step_px: 10.0,
             min_inliers: 8,
+            min_inlier_share: 0.3,
             max_height_jump_m: 450.0,
             max_landmarks: 300,
             grid: (8, 6),
@@ -99,6 +107,54 @@ pub struct FrameResult {
     pub guess_px: Vec<Option<Pixel>>,
     /// The covariance of an accepted fix.
     pub covariance: Option<PoseCovariance>,
+    /// Why the frame's solution was not accepted (its pose is then carried).
+    pub rejection: Option<Rejection>,
+}
+
+/// Why a frame's pose solution was rejected.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Rejection {
+    /// Fewer RANSAC inliers than `min_inliers`.
+    FewInliers { inliers: usize },
+    /// Inliers a smaller share of the matches than `min_inlier_share`.
+    InlierShare { inliers: usize, matches: usize },
+    /// The height disagrees with the prediction by more than the gate allows.
+    Height { off_m: f64, allowed_m: f64 },
+}
+
+/// The height check of a fix: where its height should be and how far from it
+/// it may be. The reference is the last accepted fix (before the first one,
+/// the initial guess, with three of its sigmas added), carried to the frame
+/// by the vertical velocity when the fixes give one; the allowance is
+/// `max_jump_m` plus three sigmas of the vertical velocity times the time
+/// since the reference. It grows while fixes are rejected, so a run of
+/// rejections never locks the navigator out, and a climbing rocket is
+/// predicted where it climbs to.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct HeightGate {
+    pub predicted_h_m: f64,
+    pub allowed_m: f64,
+}
+
+impl HeightGate {
+    /// `reference`: (time, height m, extra allowance m) of the last accepted
+    /// fix or the initial guess; `v_up`: the vertical velocity (m/s) when
+    /// known; `v_sigma`: its (or, unknown, the assumed velocity's) 1-sigma
+    /// error (m/s).
+    pub fn new(reference: (f64, f64, f64), t: f64, v_up: Option<f64>, v_sigma: f64, max_jump_m: f64) -> Self {
+        let (t_ref, h_ref, extra_m) = reference;
+        let dt = (t - t_ref).max(0.0);
+        HeightGate {
+            predicted_h_m: h_ref + v_up.unwrap_or(0.0) * dt,
+            allowed_m: max_jump_m + extra_m + 3.0 * v_sigma * dt,
+        }
+    }
+
+    /// `None` when `h_m` passes, else the rejection.
+    pub fn check(&self, h_m: f64) -> Option<Rejection> {
+        let off_m = (h_m - self.predicted_h_m).abs();
+        (off_m > self.allowed_m).then_some(Rejection::Height { off_m, allowed_m: self.allowed_m })
+    }
 }
 
 /// Terrain relative navigation over one flight.
@@ -127,6 +183,8 @@ pub struct Navigator<'a> {
     /// view inherits the tilt the frames before it saw.
     filter: AttitudeFilter,
     last_fix: Option<(f64, CameraPose)>,
+    /// The initial guess (time, height m): the first fix's height reference.
+    init_h: (f64, f64),
     /// Accepted fix positions of the last [`VELOCITY_WINDOW_S`] (time, ECEF).
     recent_fixes: std::collections::VecDeque<(f64, Vector3<f64>)>,
     /// Velocity (ECEF, m/s) and its 1-sigma error; `None` before the fixes
@@ -201,6 +259,7 @@ impl<'a> Navigator<'a> {
             ),
             params,
             last_fix: None,
+            init_h: (init.t, init.position.h_m),
             recent_fixes: Default::default(),
             velocity_sigma: None,
             velocity: Vector3::zeros(),
@@ -246,14 +305,18 @@ impl<'a> Navigator<'a> {
         let outcome = self.solve(t, &guess, &propagated, image);
         let ms = start.elapsed().as_secs_f64() * 1e3;
         let mut covariance = None;
+        let mut rejected = None;
         let (status, inliers, n_matches, matches, guess_px) = match outcome {
             Ok(sol) => {
-                let jump = self
-                    .last_fix
-                    .map(|(_, p)| (p.position.to_geodetic().h_m - sol.pose.position.to_geodetic().h_m).abs())
-                    .unwrap_or(0.0);
-                let accepted =
-                    sol.inliers >= self.params.min_inliers && jump <= self.params.max_height_jump_m;
+                let rejection = if sol.inliers < self.params.min_inliers {
+                    Some(Rejection::FewInliers { inliers: sol.inliers })
+                } else if (sol.inliers as f64) < self.params.min_inlier_share * sol.n_matches as f64 {
+                    Some(Rejection::InlierShare { inliers: sol.inliers, matches: sol.n_matches })
+                } else {
+                    self.height_gate(t).check(sol.pose.position.to_geodetic().h_m)
+                };
+                rejected = rejection;
+                let accepted = rejection.is_none();
                 if accepted {
                     self.recent_fixes.push_back((t, sol.pose.position.0));
                     while self.recent_fixes.front().is_some_and(|f| t - f.0 > VELOCITY_WINDOW_S) {
@@ -299,7 +362,7 @@ impl<'a> Navigator<'a> {
                         );
                     }
                 } else {
-                    debug!("t {t:.3}: fix rejected ({} inliers, height jump {jump:.0} m)", sol.inliers);
+                    debug!("t {t:.3}: fix rejected ({} inliers): {rejection:?}", sol.inliers);
                     self.carry(t, guess, propagated);
                 }
                 let status = if accepted { FixStatus::Fix } else { FixStatus::Propagated };
@@ -328,7 +391,22 @@ impl<'a> Navigator<'a> {
                 .collect(),
             guess_px,
             covariance,
+            rejection: rejected,
         }
+    }
+
+    /// The height gate at `t` ([`HeightGate`]).
+    fn height_gate(&self, t: f64) -> HeightGate {
+        let reference = match self.last_fix {
+            Some((t_fix, p)) => (t_fix, p.position.to_geodetic().h_m, 0.0),
+            None => (self.init_h.0, self.init_h.1, 3.0 * self.params.init_sigma_m),
+        };
+        let v_up = match (self.last_fix, self.velocity_sigma) {
+            (Some((_, p)), Some(_)) => Some(self.velocity.dot(&p.position.to_geodetic().up_ecef())),
+            _ => None,
+        };
+        let v_sigma = self.velocity_sigma.unwrap_or(self.params.velocity_sigma_m_s);
+        HeightGate::new(reference, t, v_up, v_sigma, self.params.max_height_jump_m)
     }
 
     /// Templates of `level` meeting `bbox`, through the per-level cache.
@@ -439,10 +517,10 @@ impl<'a> Navigator<'a> {
                 }
                 Ok(sol) => {
                     debug!("level {level}: weak solution ({} inliers) not followed", sol.inliers);
-                    radius *= 2;
+                    radius = widened(radius, self.params.max_radius_px);
                 }
                 Err(n) if level == 0 => return Err(n),
-                Err(_) => radius *= 2,
+                Err(_) => radius = widened(radius, self.params.max_radius_px),
             }
         }
         let mut sol = best.ok_or(0usize)?;
@@ -728,6 +806,16 @@ impl Solution {
 /// Least-squares velocity (m/s) of timed positions, with its 1-sigma error
 /// (from the fit's residuals, at least [`VELOCITY_KNOWN_SIGMA_M_S`]); `None`
 /// when they span less than [`VELOCITY_MIN_SPAN_S`] or number fewer than 3.
+/// The search radius at the next finer pyramid level after a coarse level
+/// gave no trustworthy pose: the same ground radius (twice the pixels), but
+/// at most twice `max_radius_px`. Beyond that the coarser level has searched
+/// the ground already, and a full-resolution search of hundreds of pixels
+/// per landmark costs seconds per frame while lost (5.8 s per 1024x768
+/// frame measured before this bound), for a match the coarse level missed.
+fn widened(radius: usize, max_radius_px: usize) -> usize {
+    (radius * 2).min(2 * max_radius_px)
+}
+
 fn velocity_fit(fixes: &std::collections::VecDeque<(f64, Vector3<f64>)>) -> Option<(Vector3<f64>, f64)> {
     let n = fixes.len();
     let (t0, t1) = (fixes.front()?.0, fixes.back()?.0);
@@ -763,6 +851,42 @@ mod tests {
         assert_eq!(choose_lighting(&baked, Some(&sun(-270.0, 41.0))), (3, true));
         // The nearest is too far to count as the flight's.
         assert_eq!(choose_lighting(&baked, Some(&sun(180.0, 60.0))), (3, false));
+    }
+
+    #[test]
+    fn a_failed_coarse_level_widens_the_next_search_within_a_bound() {
+        assert_eq!(widened(5, 16), 10);
+        assert_eq!(widened(16, 16), 32);
+        assert_eq!(widened(32, 16), 32);
+        // A first search wider than the bound (the coarsest level's) is not carried down.
+        assert_eq!(widened(56, 16), 32);
+    }
+
+    #[test]
+    fn the_height_gate_widens_while_fixes_are_rejected() {
+        // A fix 100 m off the last one, with a 30 m limit and no velocity yet
+        // (20 m/s assumed): rejected at first, accepted once 70 m of
+        // 3-sigma drift have accumulated (70 / 60 m/s = 1.17 s): no lockout.
+        let gate = |t| HeightGate::new((10.0, 1000.0, 0.0), t, None, 20.0, 30.0);
+        assert!(matches!(gate(10.5).check(1100.0), Some(Rejection::Height { .. })));
+        assert!(gate(11.0).check(1100.0).is_some());
+        assert_eq!(gate(11.2).check(1100.0), None);
+        // Before the first fix the initial guess is the reference, with three
+        // of its sigmas: 300 m x 3 + 30 m.
+        let first = HeightGate::new((0.0, 5000.0, 900.0), 0.0, None, 20.0, 30.0);
+        assert_eq!(first.check(5929.0), None);
+        assert!(first.check(5931.0).is_some() && first.check(4069.0).is_some());
+    }
+
+    #[test]
+    fn the_height_gate_follows_a_climb() {
+        // A rocket climbing 240 m/s, velocity known to 5 m/s: two seconds after
+        // the last fix it is predicted 480 m higher; the old gate (450 m from
+        // the last fix, whatever the time) would refuse it for good.
+        let g = HeightGate::new((3.0, 2000.0, 0.0), 5.0, Some(240.0), 5.0, 30.0);
+        assert!((g.predicted_h_m - 2480.0).abs() < 1e-9 && (g.allowed_m - 60.0).abs() < 1e-9);
+        assert_eq!(g.check(2470.0), None);
+        assert!(g.check(2000.0).is_some());
     }
 
     #[test]

@@ -91,6 +91,12 @@ fn navigates_a_simulated_flight_to_metres() {
     println!("mean predicted 3D sd {sd_mean:.2} m against mean error {mean:.2} m");
     assert!(rows.iter().all(|r| r[1..7].iter().all(|&x| x > 0.0 && x.is_finite())));
     assert!(sd_mean > 0.1 * mean && sd_mean < 10.0 * mean, "{sd_mean} {mean}");
+    // trn evaluate reads covariance.csv next to poses.csv: one NEES per fix.
+    let c = &run["consistency"];
+    assert_eq!(c["fixes"].as_u64().unwrap() as usize, fixes, "{c}");
+    let (nees, band) = (c["mean_nees"].as_f64().unwrap(), c["band"].as_array().unwrap());
+    println!("mean NEES {nees:.2}, consistent {band:?}");
+    assert!(nees.is_finite() && nees > 0.0 && band[0].as_f64().unwrap() < 3.0);
 
     // At 2 images per second only every other frame is processed while fixes
     // are accepted.

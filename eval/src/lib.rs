@@ -93,6 +93,10 @@ pub struct RunReport {
     pub timing_ms: Option<Stats>,
     /// Reprojection error of inlier matches (px), from `matches.csv`.
     pub inlier_residual_px: Option<Stats>,
+    /// The `covariance.csv` next to `poses`, if any, and how well its
+    /// position covariances fit the fixes' errors (NEES).
+    pub covariance: Option<PathBuf>,
+    pub consistency: Option<metrics::Consistency>,
     pub per_frame: Vec<FrameEval>,
     #[serde(skip)]
     pub inlier_residuals_px: Vec<f64>,
@@ -201,6 +205,12 @@ fn score_run(truths: &[trn_flight::TimedPose], run: &RunInput, band_m: f64) -> R
         }
         None => Vec::new(),
     };
+    let cov_path = run.poses.parent().unwrap_or(Path::new(".")).join("covariance.csv");
+    let cov_path = cov_path.is_file().then_some(cov_path);
+    let consistency = match &cov_path {
+        Some(p) => metrics::consistency(&per_frame, &trn_flight::read_pose_covariances(p)?),
+        None => None,
+    };
     let ms: Vec<f64> = per_frame.iter().filter_map(|f| f.ms).collect();
     Ok(RunReport {
         label: run.label.clone(),
@@ -214,6 +224,8 @@ fn score_run(truths: &[trn_flight::TimedPose], run: &RunInput, band_m: f64) -> R
         bands: metrics::bands(&per_frame, band_m),
         timing_ms: metrics::stats(&ms),
         inlier_residual_px: metrics::stats(&residuals),
+        covariance: cov_path,
+        consistency,
         per_frame,
         inlier_residuals_px: residuals,
     })
@@ -322,6 +334,18 @@ impl fmt::Display for RunReport {
                 f,
                 "inlier reprojection error (px, n={}): median {:.3}, p95 {:.3}, max {:.3}",
                 r.n, r.median, r.p95, r.max
+            )?;
+        }
+        if let Some(c) = &self.consistency {
+            writeln!(
+                f,
+                "position covariance (NEES, n={}): mean {:.2} (consistent: {:.2}..{:.2}), {} within the 95% point, errors {:.1}x the reported sigma (median)",
+                c.fixes,
+                c.mean_nees,
+                c.band[0],
+                c.band[1],
+                pct(c.share_within_95),
+                c.median_sigma_ratio
             )?;
         }
         Ok(())

@@ -324,6 +324,69 @@ pub fn compare(runs: &[(&str, &[FrameEval])], band_m: f64) -> Comparison {
     Comparison { runs: runs.iter().map(|(l, _)| l.to_string()).collect(), segments }
 }
 
+/// Whether the navigator's position covariances fit its errors: the
+/// normalised estimation error squared `NEES = eᵀ P⁻¹ e` of each fix with a
+/// covariance (e: estimate − truth, ECEF; P: the position block), 3 degrees
+/// of freedom. A consistent navigator has a mean NEES of 3, inside `band`
+/// (the two-sided 95% interval of the mean of n values, χ²(3n)/n).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct Consistency {
+    pub fixes: usize,
+    pub mean_nees: f64,
+    pub band: [f64; 2],
+    /// Share of fixes whose NEES is within χ²(3)'s 95% point (7.81).
+    pub share_within_95: f64,
+    /// The median ratio of the error to the covariance's 1-sigma size along
+    /// it (`sqrt(NEES)` for one dimension): how many times too small the
+    /// reported sigma is.
+    pub median_sigma_ratio: f64,
+}
+
+/// χ²(k) quantile at the standard-normal point `z` (Wilson-Hilferty; within
+/// 0.1% for the k >= 3 used here).
+pub fn chi2_quantile(k: f64, z: f64) -> f64 {
+    let a = 2.0 / (9.0 * k);
+    k * (1.0 - a + z * a.sqrt()).powi(3)
+}
+
+/// [`Consistency`] of the `fix` frames that have a covariance row at their
+/// time (`covariances`: time and 6x6 ECEF covariance, position in 3..6).
+pub fn consistency(
+    frames: &[FrameEval],
+    covariances: &[(f64, nalgebra::Matrix6<f64>)],
+) -> Option<Consistency> {
+    let mut nees = Vec::new();
+    for f in frames.iter().filter(|f| f.status == FixStatus::Fix) {
+        let Some(est) = &f.estimate else { continue };
+        let i = covariances.partition_point(|c| c.0 < f.t - TIME_TOL_S);
+        let Some((_, c)) = covariances.get(i).filter(|c| (c.0 - f.t).abs() <= TIME_TOL_S) else { continue };
+        let p: nalgebra::Matrix3<f64> = c.fixed_view::<3, 3>(3, 3).into_owned();
+        let e = est.position.to_ecef().0 - f.truth.position.to_ecef().0;
+        if let Some(pi) = p.try_inverse() {
+            let v = (e.transpose() * pi * e)[(0, 0)];
+            if v.is_finite() && v >= 0.0 {
+                nees.push(v);
+            }
+        }
+    }
+    let n = nees.len();
+    if n == 0 {
+        return None;
+    }
+    let mean = nees.iter().sum::<f64>() / n as f64;
+    let k = 3.0 * n as f64;
+    let z = 1.959_963_984_540_054;
+    let mut sorted = nees.clone();
+    sorted.sort_by(f64::total_cmp);
+    Some(Consistency {
+        fixes: n,
+        mean_nees: mean,
+        band: [chi2_quantile(k, -z) / n as f64, chi2_quantile(k, z) / n as f64],
+        share_within_95: nees.iter().filter(|&&v| v <= 7.814_727_903_251_178).count() as f64 / n as f64,
+        median_sigma_ratio: (sorted[n / 2] / 3.0).sqrt(),
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -339,6 +402,67 @@ mod tests {
 
     fn row(pose: TimedPose, status: FixStatus) -> NavRecord {
         NavRecord { pose, status, inliers: 10, matches: 12, ms: 5.0 }
+    }
+
+    #[test]
+    fn chi2_quantiles_match_tables() {
+        // chi2(30): 16.791 and 46.979 (2.5% and 97.5%); chi2(300): 253.9, 349.9.
+        for (k, z, want) in
+            [(30.0, -1.96, 16.791), (30.0, 1.96, 46.979), (300.0, -1.96, 253.9), (300.0, 1.96, 349.9)]
+        {
+            let got = chi2_quantile(k, z);
+            assert!((got / want - 1.0).abs() < 0.003, "k {k} z {z}: {got} vs {want}");
+        }
+    }
+
+    #[test]
+    fn errors_drawn_from_the_covariance_are_consistent_and_a_tenth_of_it_is_not() {
+        // A correlated ECEF position covariance, errors drawn from it (Box-Muller
+        // on a fixed LCG), one fix per frame.
+        let l = nalgebra::Matrix3::new(30.0, 0.0, 0.0, 12.0, 20.0, 0.0, -5.0, 8.0, 10.0);
+        let p = l * l.transpose();
+        let mut seed = 7u64;
+        let mut uniform = || {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            ((seed >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+        };
+        let mut gauss = || {
+            let (u, v) = (uniform(), uniform());
+            (-2.0 * u.ln()).sqrt() * (2.0 * std::f64::consts::PI * v).cos()
+        };
+        let n = 400;
+        let truths: Vec<TimedPose> = (0..n).map(|i| truth(i as f64 * 0.5, 25_000.0)).collect();
+        let rows: Vec<NavRecord> = truths
+            .iter()
+            .map(|t| {
+                let e = l * Vector3::new(gauss(), gauss(), gauss());
+                let est = trn_geodesy::Ecef(t.position.to_ecef().0 + e).to_geodetic();
+                row(TimedPose { position: est, ..*t }, FixStatus::Fix)
+            })
+            .collect();
+        let (frames, _) = match_frames(&truths, &rows);
+        let cov = |scale: f64| -> Vec<(f64, nalgebra::Matrix6<f64>)> {
+            truths
+                .iter()
+                .map(|t| {
+                    let mut m = nalgebra::Matrix6::identity() * 1e-8;
+                    m.fixed_view_mut::<3, 3>(3, 3).copy_from(&(p * scale));
+                    (t.t, m)
+                })
+                .collect()
+        };
+        let c = consistency(&frames, &cov(1.0)).unwrap();
+        assert_eq!(c.fixes, n);
+        assert!(c.band[0] < 3.0 && 3.0 < c.band[1], "{c:?}");
+        assert!(c.mean_nees > c.band[0] && c.mean_nees < c.band[1], "{c:?}");
+        assert!((c.share_within_95 - 0.95).abs() < 0.04, "{c:?}");
+        assert!((c.median_sigma_ratio - 0.88).abs() < 0.15, "{c:?}");
+        // Reported sigmas ten times too small: NEES ~ 300, far outside.
+        let bad = consistency(&frames, &cov(0.01)).unwrap();
+        assert!(bad.mean_nees > 10.0 * bad.band[1], "{bad:?}");
+        assert!(bad.median_sigma_ratio > 7.0, "{bad:?}");
+        // Frames without a covariance row, or not fixes, are left out.
+        assert!(consistency(&frames, &[]).is_none());
     }
 
     #[test]

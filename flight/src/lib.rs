@@ -640,6 +640,30 @@ pub fn write_pose_covariances(path: &Path, rows: &[PoseCovariance]) -> Result<()
     write_csv_atomic(path, &covariance_header(), rows.iter().map(pose_covariance_line))
 }
 
+/// Reads `covariance.csv` ([`write_pose_covariances`]): frame time and the
+/// ECEF covariance (attitude rad², position m²) of each fix.
+pub fn read_pose_covariances(path: &Path) -> Result<Vec<(f64, nalgebra::Matrix6<f64>)>> {
+    let tab = Table::read(path)?;
+    let t = tab.column("t")?;
+    let mut cols = Vec::with_capacity(21);
+    for i in 0..6 {
+        for j in i..6 {
+            cols.push((i, j, tab.column(&format!("c_{i}_{j}"))?));
+        }
+    }
+    let mut out = Vec::with_capacity(tab.rows.len());
+    for (line, rec) in &tab.rows {
+        let mut m = nalgebra::Matrix6::zeros();
+        for &(i, j, k) in &cols {
+            let v = tab.number(*line, rec, k)?;
+            m[(i, j)] = v;
+            m[(j, i)] = v;
+        }
+        out.push((tab.number(*line, rec, t)?, m));
+    }
+    Ok(out)
+}
+
 /// One correlation match of a processed frame (`matches.csv`, written by the
 /// navigator next to `poses.csv`; not part of the shared flight format).
 #[derive(Clone, Copy, Debug, PartialEq)]

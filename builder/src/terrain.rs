@@ -231,11 +231,23 @@ fn ellipsoidal_height(
     lat: f64,
 ) -> Option<f64> {
     let (fc, fr) = (c.floor(), r.floor());
-    let (tc, tr) = (c - fc, r - fr);
     let (ic, ir) = (fc as isize, fr as isize);
-    let v = (at(ic, ir)? * (1.0 - tc) + at(ic + 1, ir)? * tc) * (1.0 - tr)
-        + (at(ic, ir + 1)? * (1.0 - tc) + at(ic + 1, ir + 1)? * tc) * tr;
-    let mut hgt = v * spec.to_metres;
+    let corners = [at(ic, ir)?, at(ic + 1, ir)?, at(ic, ir + 1)?, at(ic + 1, ir + 1)?];
+    metres_above_ellipsoid(spec, corners, (c - fc, r - fr), lon, lat)
+}
+
+/// Bilinear blend of a cell's four stored values (top-left, top-right,
+/// bottom-left, bottom-right) at fractions `(tc, tr)`, in metres, made
+/// ellipsoidal with the DEM's geoid.
+fn metres_above_ellipsoid(
+    spec: &DemSpec,
+    v: [f64; 4],
+    (tc, tr): (f64, f64),
+    lon: f64,
+    lat: f64,
+) -> Option<f64> {
+    let blend = (v[0] * (1.0 - tc) + v[1] * tc) * (1.0 - tr) + (v[2] * (1.0 - tc) + v[3] * tc) * tr;
+    let mut hgt = blend * spec.to_metres;
     if let Some(g) = &spec.geoid {
         hgt += g.undulation_at(lat, lon)?;
     }
@@ -373,13 +385,7 @@ impl PatchPart<'_> {
                 valid_height(spec, b[0]),
                 valid_height(spec, b[1]),
             ) {
-                let (tc, tr) = (c - fc, r - fr);
-                let v = (a0 * (1.0 - tc) + a1 * tc) * (1.0 - tr) + (b0 * (1.0 - tc) + b1 * tc) * tr;
-                let mut hgt = v * spec.to_metres;
-                if let Some(g) = &spec.geoid {
-                    hgt += g.undulation_at(lat, lon)?;
-                }
-                return Some(hgt);
+                return metres_above_ellipsoid(spec, [a0, a1, b0, b1], (c - fc, r - fr), lon, lat);
             }
         }
         let (w, h) = (spec.info.width as f64, spec.info.height as f64);

@@ -5,7 +5,7 @@ use std::collections::BTreeMap;
 
 use nalgebra::{UnitQuaternion, Vector3};
 use serde::Serialize;
-use trn_flight::{FixStatus, NavRecord, TimedPose};
+use trn_flight::{FixStatus, NavRecord, TimedCovariance, TimedPose};
 use trn_geodesy::LocalFrame;
 
 /// A `poses.csv` row belongs to a frame when their times differ by at most this.
@@ -350,17 +350,14 @@ pub fn chi2_quantile(k: f64, z: f64) -> f64 {
 }
 
 /// [`Consistency`] of the `fix` frames that have a covariance row at their
-/// time (`covariances`: time and 6x6 ECEF covariance, position in 3..6).
-pub fn consistency(
-    frames: &[FrameEval],
-    covariances: &[(f64, nalgebra::Matrix6<f64>)],
-) -> Option<Consistency> {
+/// time (`covariances` in time order).
+pub fn consistency(frames: &[FrameEval], covariances: &[TimedCovariance]) -> Option<Consistency> {
     let mut nees = Vec::new();
     for f in frames.iter().filter(|f| f.status == FixStatus::Fix) {
         let Some(est) = &f.estimate else { continue };
-        let i = covariances.partition_point(|c| c.0 < f.t - TIME_TOL_S);
-        let Some((_, c)) = covariances.get(i).filter(|c| (c.0 - f.t).abs() <= TIME_TOL_S) else { continue };
-        let p: nalgebra::Matrix3<f64> = c.fixed_view::<3, 3>(3, 3).into_owned();
+        let i = covariances.partition_point(|c| c.t < f.t - TIME_TOL_S);
+        let Some(c) = covariances.get(i).filter(|c| (c.t - f.t).abs() <= TIME_TOL_S) else { continue };
+        let p: nalgebra::Matrix3<f64> = c.ecef.fixed_view::<3, 3>(3, 3).into_owned();
         let e = est.position.to_ecef().0 - f.truth.position.to_ecef().0;
         if let Some(pi) = p.try_inverse() {
             let v = (e.transpose() * pi * e)[(0, 0)];
@@ -441,13 +438,13 @@ mod tests {
             })
             .collect();
         let (frames, _) = match_frames(&truths, &rows);
-        let cov = |scale: f64| -> Vec<(f64, nalgebra::Matrix6<f64>)> {
+        let cov = |scale: f64| -> Vec<TimedCovariance> {
             truths
                 .iter()
                 .map(|t| {
-                    let mut m = nalgebra::Matrix6::identity() * 1e-8;
-                    m.fixed_view_mut::<3, 3>(3, 3).copy_from(&(p * scale));
-                    (t.t, m)
+                    let mut ecef = nalgebra::Matrix6::identity() * 1e-8;
+                    ecef.fixed_view_mut::<3, 3>(3, 3).copy_from(&(p * scale));
+                    TimedCovariance { t: t.t, ecef }
                 })
                 .collect()
         };

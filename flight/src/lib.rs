@@ -640,9 +640,16 @@ pub fn write_pose_covariances(path: &Path, rows: &[PoseCovariance]) -> Result<()
     write_csv_atomic(path, &covariance_header(), rows.iter().map(pose_covariance_line))
 }
 
-/// Reads `covariance.csv` ([`write_pose_covariances`]): frame time and the
-/// ECEF covariance (attitude rad², position m²) of each fix.
-pub fn read_pose_covariances(path: &Path) -> Result<Vec<(f64, nalgebra::Matrix6<f64>)>> {
+/// One `covariance.csv` row as read back: a fix's time and its ECEF
+/// covariance (attitude rad² in 0..3, position m² in 3..6).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TimedCovariance {
+    pub t: f64,
+    pub ecef: nalgebra::Matrix6<f64>,
+}
+
+/// Reads `covariance.csv` ([`write_pose_covariances`]).
+pub fn read_pose_covariances(path: &Path) -> Result<Vec<TimedCovariance>> {
     let tab = Table::read(path)?;
     let t = tab.column("t")?;
     let mut cols = Vec::with_capacity(21);
@@ -659,7 +666,7 @@ pub fn read_pose_covariances(path: &Path) -> Result<Vec<(f64, nalgebra::Matrix6<
             m[(i, j)] = v;
             m[(j, i)] = v;
         }
-        out.push((tab.number(*line, rec, t)?, m));
+        out.push(TimedCovariance { t: tab.number(*line, rec, t)?, ecef: m });
     }
     Ok(out)
 }

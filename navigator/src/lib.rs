@@ -30,7 +30,7 @@ use ::image::ImageEncoder;
 use trn_flight::{FixStatus, Flight, MatchRecord, NavRecord, PoseCovariance};
 
 pub use http_source::HttpSource;
-pub use nav::{HeightGate, NavParams, Navigator, Rejection};
+pub use nav::{HeightGate, HeightReference, NavParams, Navigator, Rejection};
 pub use source::{DbSource, LandmarkSource, SourceError};
 
 /// Errors of a navigation run; each names the file at fault.

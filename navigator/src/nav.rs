@@ -136,17 +136,29 @@ pub struct HeightGate {
     pub allowed_m: f64,
 }
 
+/// What a [`HeightGate`] measures from: the last accepted fix (no extra
+/// allowance) or the initial guess (three of its sigmas).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct HeightReference {
+    pub t: f64,
+    pub h_m: f64,
+    pub extra_allowance_m: f64,
+}
+
 impl HeightGate {
-    /// `reference`: (time, height m, extra allowance m) of the last accepted
-    /// fix or the initial guess; `v_up`: the vertical velocity (m/s) when
-    /// known; `v_sigma`: its (or, unknown, the assumed velocity's) 1-sigma
-    /// error (m/s).
-    pub fn new(reference: (f64, f64, f64), t: f64, v_up: Option<f64>, v_sigma: f64, max_jump_m: f64) -> Self {
-        let (t_ref, h_ref, extra_m) = reference;
-        let dt = (t - t_ref).max(0.0);
+    /// `v_up_m_s`: the vertical velocity when known; `v_sigma_m_s`: its (or,
+    /// unknown, the assumed velocity's) 1-sigma error.
+    pub fn new(
+        reference: HeightReference,
+        t: f64,
+        v_up_m_s: Option<f64>,
+        v_sigma_m_s: f64,
+        max_jump_m: f64,
+    ) -> Self {
+        let dt = (t - reference.t).max(0.0);
         HeightGate {
-            predicted_h_m: h_ref + v_up.unwrap_or(0.0) * dt,
-            allowed_m: max_jump_m + extra_m + 3.0 * v_sigma * dt,
+            predicted_h_m: reference.h_m + v_up_m_s.unwrap_or(0.0) * dt,
+            allowed_m: max_jump_m + reference.extra_allowance_m + 3.0 * v_sigma_m_s * dt,
         }
     }
 
@@ -183,8 +195,8 @@ pub struct Navigator<'a> {
     /// view inherits the tilt the frames before it saw.
     filter: AttitudeFilter,
     last_fix: Option<(f64, CameraPose)>,
-    /// The initial guess (time, height m): the first fix's height reference.
-    init_h: (f64, f64),
+    /// The initial guess: the first fix's height reference.
+    init_h: HeightReference,
     /// Accepted fix positions of the last [`VELOCITY_WINDOW_S`] (time, ECEF).
     recent_fixes: std::collections::VecDeque<(f64, Vector3<f64>)>,
     /// Velocity (ECEF, m/s) and its 1-sigma error; `None` before the fixes
@@ -236,6 +248,11 @@ impl<'a> Navigator<'a> {
         let near = crate::view::terrain_near(source, &levels, &init.position)?;
         let terrain_h_m = near.height_m;
         let (lighting, lit_for_flight) = choose_lighting(&source.suns()?, params.sun.as_ref());
+        let init_h = HeightReference {
+            t: init.t,
+            h_m: init.position.h_m,
+            extra_allowance_m: 3.0 * params.init_sigma_m,
+        };
         Ok(Self {
             source,
             camera: camera.model,
@@ -259,7 +276,7 @@ impl<'a> Navigator<'a> {
             ),
             params,
             last_fix: None,
-            init_h: (init.t, init.position.h_m),
+            init_h,
             recent_fixes: Default::default(),
             velocity_sigma: None,
             velocity: Vector3::zeros(),
@@ -397,13 +414,13 @@ impl<'a> Navigator<'a> {
 
     /// The height gate at `t` ([`HeightGate`]).
     fn height_gate(&self, t: f64) -> HeightGate {
-        let reference = match self.last_fix {
-            Some((t_fix, p)) => (t_fix, p.position.to_geodetic().h_m, 0.0),
-            None => (self.init_h.0, self.init_h.1, 3.0 * self.params.init_sigma_m),
-        };
-        let v_up = match (self.last_fix, self.velocity_sigma) {
-            (Some((_, p)), Some(_)) => Some(self.velocity.dot(&p.position.to_geodetic().up_ecef())),
-            _ => None,
+        let (reference, v_up) = match self.last_fix {
+            Some((t_fix, p)) => {
+                let g = p.position.to_geodetic();
+                let reference = HeightReference { t: t_fix, h_m: g.h_m, extra_allowance_m: 0.0 };
+                (reference, self.velocity_sigma.map(|_| self.velocity.dot(&g.up_ecef())))
+            }
+            None => (self.init_h, None),
         };
         let v_sigma = self.velocity_sigma.unwrap_or(self.params.velocity_sigma_m_s);
         HeightGate::new(reference, t, v_up, v_sigma, self.params.max_height_jump_m)
@@ -867,13 +884,15 @@ mod tests {
         // A fix 100 m off the last one, with a 30 m limit and no velocity yet
         // (20 m/s assumed): rejected at first, accepted once 70 m of
         // 3-sigma drift have accumulated (70 / 60 m/s = 1.17 s): no lockout.
-        let gate = |t| HeightGate::new((10.0, 1000.0, 0.0), t, None, 20.0, 30.0);
+        let fix = HeightReference { t: 10.0, h_m: 1000.0, extra_allowance_m: 0.0 };
+        let gate = |t| HeightGate::new(fix, t, None, 20.0, 30.0);
         assert!(matches!(gate(10.5).check(1100.0), Some(Rejection::Height { .. })));
         assert!(gate(11.0).check(1100.0).is_some());
         assert_eq!(gate(11.2).check(1100.0), None);
         // Before the first fix the initial guess is the reference, with three
         // of its sigmas: 300 m x 3 + 30 m.
-        let first = HeightGate::new((0.0, 5000.0, 900.0), 0.0, None, 20.0, 30.0);
+        let guess = HeightReference { t: 0.0, h_m: 5000.0, extra_allowance_m: 900.0 };
+        let first = HeightGate::new(guess, 0.0, None, 20.0, 30.0);
         assert_eq!(first.check(5929.0), None);
         assert!(first.check(5931.0).is_some() && first.check(4069.0).is_some());
     }
@@ -883,7 +902,8 @@ mod tests {
         // A rocket climbing 240 m/s, velocity known to 5 m/s: two seconds after
         // the last fix it is predicted 480 m higher; the old gate (450 m from
         // the last fix, whatever the time) would refuse it for good.
-        let g = HeightGate::new((3.0, 2000.0, 0.0), 5.0, Some(240.0), 5.0, 30.0);
+        let fix = HeightReference { t: 3.0, h_m: 2000.0, extra_allowance_m: 0.0 };
+        let g = HeightGate::new(fix, 5.0, Some(240.0), 5.0, 30.0);
         assert!((g.predicted_h_m - 2480.0).abs() < 1e-9 && (g.allowed_m - 60.0).abs() < 1e-9);
         assert_eq!(g.check(2470.0), None);
         assert!(g.check(2000.0).is_some());

@@ -309,6 +309,28 @@ struct NavigateArgs {
     /// the database's lighting is not the flight's sun (0: ignored).
     #[arg(long, default_value_t = 0.5, value_parser = parse_share)]
     shading_weight: f64,
+    /// Trust camera.json's focal length instead of estimating it in flight.
+    #[arg(long)]
+    no_self_calibration: bool,
+    /// Focal length error of camera.json (percent, 1 sigma): the
+    /// self-calibration's prior.
+    #[arg(long, default_value_t = 0.5)]
+    focal_sigma: f64,
+    /// Principal point error of camera.json (pixels, 1 sigma).
+    #[arg(long, default_value_t = 3.0)]
+    principal_point_sigma: f64,
+    /// Estimate the principal point too (default: kept at camera.json's, its
+    /// error allowed for in the focal length's evidence).
+    #[arg(long)]
+    estimate_principal_point: bool,
+    /// Height error of the database's landmarks (m, 1 sigma), allowed for in
+    /// the focal length's evidence.
+    #[arg(long, default_value_t = 20.0)]
+    landmark_height_sigma: f64,
+    /// Frames whose matches alone give the focal length worse than this
+    /// (percent, 1 sigma) do not update it.
+    #[arg(long, default_value_t = 0.5)]
+    calibration_frame_sigma: f64,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -589,6 +611,18 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
         a.gyro_bias.is_finite() && a.gyro_bias > 0.0,
         "invalid option --gyro-bias: must be deg/h > 0"
     );
+    for (name, v) in [
+        ("--focal-sigma", a.focal_sigma),
+        ("--principal-point-sigma", a.principal_point_sigma),
+        ("--calibration-frame-sigma", a.calibration_frame_sigma),
+    ] {
+        anyhow::ensure!(v.is_finite() && v > 0.0, "invalid option {name} {v}: must be a number > 0");
+    }
+    anyhow::ensure!(
+        a.landmark_height_sigma.is_finite() && a.landmark_height_sigma >= 0.0,
+        "invalid option --landmark-height-sigma {}: must be metres >= 0",
+        a.landmark_height_sigma
+    );
     if let Some(dir) = &a.matches_dir {
         std::fs::create_dir_all(dir)
             .map_err(|e| anyhow::anyhow!("invalid option --matches-dir {}: {e}", dir.display()))?;
@@ -611,6 +645,14 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
     params.shading_weight = a.shading_weight;
     params.gyro_arw_deg_sqrt_s = a.gyro_arw / 60.0;
     params.gyro_bias_deg_s = a.gyro_bias / 3600.0;
+    params.calibration = (!a.no_self_calibration).then(|| trn_navigator::calibration::CalibrationParams {
+        focal_sigma_rel: a.focal_sigma / 100.0,
+        principal_sigma_px: a.principal_point_sigma,
+        principal_point: a.estimate_principal_point,
+        landmark_height_sigma_m: a.landmark_height_sigma,
+        max_frame_sigma_rel: a.calibration_frame_sigma / 100.0,
+        ..Default::default()
+    });
     let opts = trn_navigator::RunOptions { rate_hz: a.rate, params, matches_dir: a.matches_dir.clone() };
     let bar = indicatif::ProgressBar::new(flight.frames.len() as u64);
     bar.set_style(
@@ -640,6 +682,16 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
         matches_path.display(),
         cov_path.display()
     );
+    if let Some(c) = &report.calibration {
+        tracing::info!(
+            "self-calibration: focal length {:+.3}% +- {:.3}% of camera.json's ({} fixes used, {} too weak, {} refused)",
+            c.focal_rel * 100.0,
+            c.focal_sigma_rel * 100.0,
+            c.frames_used,
+            c.frames_weak,
+            c.frames_refused
+        );
+    }
     println!("{}", serde_json::to_string_pretty(&report)?);
     Ok(())
 }

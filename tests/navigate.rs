@@ -43,6 +43,14 @@ fn navigates_a_simulated_flight_to_metres() {
     let poses = s.root().join("poses.csv");
     let o = navigate(&s, &poses, &[]);
     assert!(o.status.success(), "navigate failed: {}", stderr(&o));
+    // The run report accounts for every fix in the self-calibration.
+    let nav_report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let cal = &nav_report["calibration"];
+    let counted: u64 =
+        ["frames_used", "frames_weak", "frames_refused"].iter().map(|k| cal[k].as_u64().unwrap()).sum();
+    assert_eq!(counted, nav_report["fixes"].as_u64().unwrap(), "{nav_report}");
+    let focal_sigma = cal["focal_sigma_rel"].as_f64().unwrap();
+    assert!(focal_sigma > 0.0 && focal_sigma < 0.0051, "{cal}");
     let report = evaluate(&s, &poses);
     let run = &report["runs"][0];
     let share = run["status"]["share_fix"].as_f64().unwrap();
@@ -103,8 +111,14 @@ fn navigates_a_simulated_flight_to_metres() {
     // With --matches-dir, one picture per processed frame, named after its image.
     let half = s.root().join("half.csv");
     let pics = s.root().join("pictures/of/matches");
-    let o = navigate(&s, &half, &["--rate", "2", "--no-gyro", "--matches-dir", pics.to_str().unwrap()]);
+    let o = navigate(
+        &s,
+        &half,
+        &["--rate", "2", "--no-gyro", "--no-self-calibration", "--matches-dir", pics.to_str().unwrap()],
+    );
     assert!(o.status.success(), "navigate failed: {}", stderr(&o));
+    let nav_report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert!(nav_report["calibration"].is_null(), "{nav_report}");
     let csv = std::fs::read_to_string(&half).unwrap();
     let rows = csv.lines().count() - 1;
     assert!((7..13).contains(&rows), "{rows} rows at 2 Hz");
@@ -158,6 +172,10 @@ fn bad_inputs_are_named() {
         ("--shading-weight", "1.5"),
         ("--sun", "250"),
         ("--sun", "250,95"),
+        ("--focal-sigma", "0"),
+        ("--principal-point-sigma", "0"),
+        ("--calibration-frame-sigma", "nan"),
+        ("--landmark-height-sigma", "inf"),
     ] {
         let o = run(&["navigate", "--db", "x", "--flight", "y", "--out", "z", opt, value]);
         assert!(!o.status.success(), "{opt} {value} accepted");

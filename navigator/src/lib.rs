@@ -13,6 +13,7 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 pub mod attitude;
+pub mod calibration;
 pub mod footprint;
 pub mod http_source;
 pub mod image;
@@ -66,6 +67,41 @@ pub struct RunReport {
     /// Solutions rejected, by reason (their frames are `propagated`).
     pub rejected: RejectedCounts,
     pub median_ms: f64,
+    /// The camera's self-calibration at the end (`None`: off).
+    pub calibration: Option<CalibrationReport>,
+}
+
+/// The self-calibration's estimate at the end of a run.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct CalibrationReport {
+    /// Relative focal length error of camera.json (true = nominal * (1 + this)).
+    pub focal_rel: f64,
+    pub focal_sigma_rel: f64,
+    /// True minus camera.json's principal point (pixels), and its sigmas.
+    pub principal_du_px: f64,
+    pub principal_dv_px: f64,
+    pub principal_sigma_px: [f64; 2],
+    /// Accepted fixes that updated it, were refused by its gate, or were
+    /// too weak to use.
+    pub frames_used: usize,
+    pub frames_refused: usize,
+    pub frames_weak: usize,
+}
+
+impl CalibrationReport {
+    pub fn of(f: &calibration::CalibrationFilter) -> Self {
+        let (c, p) = (f.correction(), f.covariance());
+        Self {
+            focal_rel: c.focal_rel,
+            focal_sigma_rel: p[(0, 0)].max(0.0).sqrt(),
+            principal_du_px: c.principal_du_px,
+            principal_dv_px: c.principal_dv_px,
+            principal_sigma_px: [p[(1, 1)].max(0.0).sqrt(), p[(2, 2)].max(0.0).sqrt()],
+            frames_used: f.updates,
+            frames_refused: f.refused,
+            frames_weak: f.weak,
+        }
+    }
 }
 
 /// Rejected solutions of a run, by [`Rejection`].
@@ -174,6 +210,7 @@ pub fn run_flight(
         fixes: records.iter().filter(|r| r.status == FixStatus::Fix).count(),
         rejected,
         median_ms: ms.get(ms.len() / 2).copied().unwrap_or(0.0),
+        calibration: nav.calibration().map(CalibrationReport::of),
     };
     Ok(RunOutput { records, matches, covariances, report })
 }

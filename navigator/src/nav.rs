@@ -9,11 +9,13 @@ use trn_camera::{CameraConfig, CameraModel, CameraPose, Pixel};
 use trn_flight::{FixStatus, ImuSample, MatchRecord, NavRecord, PoseCovariance, TimedPose};
 use trn_landmark::lighting::SunLight;
 use trn_landmark::Template;
+use trn_vision::calib::{frame_calibration, perturb_pose};
 use trn_vision::ncc::{self, ImageView, NccParams};
 use trn_vision::pnp::{refine_pose, rotation_vector, AttitudePrior, RefineOptions};
 use trn_vision::ransac::{ransac_p3p, RansacParams};
 
 use crate::attitude::{AttitudeFilter, GyroErrors};
+use crate::calibration::{CalibrationFilter, CalibrationParams};
 use crate::footprint::{footprint, FootprintParams};
 use crate::image::{GreyImage, Pyramid, UndistortLut};
 use crate::predict::{predict, Predicted};
@@ -69,6 +71,10 @@ pub struct NavParams {
     /// the lighting used is not baked for the flight's sun: the score is
     /// multiplied by `1 - weight * shading_share`.
     pub shading_weight: f64,
+    /// Estimate the camera's focal length and principal point online
+    /// ([`crate::calibration`]), with these priors; `None`: trust
+    /// `camera.json`.
+    pub calibration: Option<CalibrationParams>,
 }
 
 impl Default for NavParams {
@@ -95,6 +101,7 @@ impl Default for NavParams {
             velocity_sigma_m_s: 20.0,
             sun: None,
             shading_weight: 0.5,
+            calibration: Some(CalibrationParams::default()),
         }
     }
 }
@@ -172,7 +179,11 @@ impl HeightGate {
 /// Terrain relative navigation over one flight.
 pub struct Navigator<'a> {
     source: &'a dyn LandmarkSource,
+    /// The camera as estimated now (`camera.json`'s, or self-calibrated).
     camera: CameraModel,
+    calibration: Option<CalibrationFilter>,
+    /// The camera `lut` was made for.
+    lut_camera: CameraModel,
     q_imu_cam: UnitQuaternion<f64>,
     imu: &'a [ImuSample],
     params: NavParams,
@@ -232,6 +243,11 @@ const ATTITUDE_GATE_FLOOR_DEG: f64 = 0.05;
 /// degrees of freedom, 99.9%) from the gyro prior means the two disagree:
 /// the frame is refined again with the prior loosened.
 const PRIOR_GATE_CHI2: f64 = 16.27;
+/// Huber threshold (px) of the self-calibration's residuals, as the
+/// full-resolution refinement's.
+const HUBER_PX: f64 = 1.0;
+/// Smallest pixel sigma a frame's calibration evidence is weighed with.
+const CALIBRATION_MIN_SIGMA_PX: f64 = 0.1;
 
 impl<'a> Navigator<'a> {
     pub fn new(
@@ -256,6 +272,8 @@ impl<'a> Navigator<'a> {
         Ok(Self {
             source,
             camera: camera.model,
+            calibration: params.calibration.map(|p| CalibrationFilter::new(camera.model, p)),
+            lut_camera: camera.model,
             q_imu_cam: camera.q_cam_imu().inverse(),
             imu,
             lut: UndistortLut::new(&camera.model, PYRAMID_LEVELS),
@@ -306,6 +324,73 @@ impl<'a> Navigator<'a> {
         }
     }
 
+    /// The camera for a frame at `t`: the calibration's estimate, with the
+    /// undistortion table remade once it moved a corner by a fifth of a pixel.
+    fn update_camera(&mut self, t: f64) {
+        let Some(cal) = &mut self.calibration else { return };
+        cal.propagate(t);
+        self.camera = cal.camera();
+        let corner = |m: &CameraModel| {
+            let n = self.lut_camera.pixel_to_normalized(Pixel::new(0.0, 0.0));
+            m.normalized_to_pixel(n)
+        };
+        if corner(&self.camera).distance_px(&corner(&self.lut_camera)) > 0.2 {
+            self.lut = UndistortLut::new(&self.camera, PYRAMID_LEVELS);
+            self.lut_camera = self.camera;
+        }
+    }
+
+    /// Updates the calibration with an accepted fix's inliers and moves the
+    /// fix with it; returns the pose covariance the calibration's remaining
+    /// uncertainty adds (zero without self-calibration).
+    fn calibrate(&mut self, t: f64, sol: &mut Solution) -> Matrix6<f64> {
+        let Some(cal) = &mut self.calibration else { return Matrix6::zeros() };
+        let (px, pts): (Vec<Pixel>, Vec<Vector3<f64>>) = sol
+            .records
+            .iter()
+            .filter(|r| r.inlier)
+            .filter_map(|r| Some((Pixel::new(r.u, r.v), r.landmark_ecef?.0)))
+            .unzip();
+        let rms2 = sol.records.iter().filter(|r| r.inlier).map(|r| r.residual_px.powi(2)).sum::<f64>()
+            / px.len().max(1) as f64;
+        let sigma_px = rms2.sqrt().max(CALIBRATION_MIN_SIGMA_PX);
+        let height_sigma = cal.params().landmark_height_sigma_m;
+        let Some(frame) =
+            frame_calibration(&self.camera, &px, &pts, &sol.pose, sigma_px, height_sigma, Some(HUBER_PX))
+        else {
+            return Matrix6::zeros();
+        };
+        let (frame_focal, frame_sigma) = cal.frame_focal(&frame);
+        debug!(
+            "t {t:.3}: calibration evidence: focal {frame_focal:+.5} sigma {frame_sigma:.5} ({} inliers, rms {:.2} px)",
+            px.len(),
+            rms2.sqrt()
+        );
+        match cal.update(t, &frame) {
+            Some(step) => {
+                sol.pose = perturb_pose(&sol.pose, &(frame.pose_sensitivity * step.relative));
+                let c = cal.correction();
+                let p = cal.covariance();
+                debug!(
+                    "t {t:.3}: calibration focal {:+.4}% +- {:.4}%, principal point {:+.2} {:+.2} px +- {:.2} {:.2} (frame chi2 {:.1}, rms {:.2} px)",
+                    c.focal_rel * 100.0,
+                    p[(0, 0)].sqrt() * 100.0,
+                    c.principal_du_px,
+                    c.principal_dv_px,
+                    p[(1, 1)].sqrt(),
+                    p[(2, 2)].sqrt(),
+                    step.chi2,
+                    rms2.sqrt()
+                );
+                self.camera = cal.camera();
+            }
+            None => {
+                debug!("t {t:.3}: calibration: frame not used (too weak, or inconsistent with the estimate)")
+            }
+        }
+        cal.pose_covariance(&frame)
+    }
+
     /// The pose to report for a frame without an accepted fix.
     fn carry(&mut self, t: f64, guess: CameraPose, propagated: Matrix6<f64>) {
         let dt = (t - self.t).max(0.0);
@@ -315,9 +400,15 @@ impl<'a> Navigator<'a> {
         self.t = t;
     }
 
+    /// The camera's self-calibration (`None`: camera.json trusted).
+    pub fn calibration(&self) -> Option<&CalibrationFilter> {
+        self.calibration.as_ref()
+    }
+
     /// Processes one image taken at `t`.
     pub fn process(&mut self, t: f64, image: GreyImage) -> FrameResult {
         let start = Instant::now();
+        self.update_camera(t);
         let (guess, propagated) = self.predict(t);
         let outcome = self.solve(t, &guess, &propagated, image);
         let ms = start.elapsed().as_secs_f64() * 1e3;
@@ -334,7 +425,9 @@ impl<'a> Navigator<'a> {
                 };
                 rejected = rejection;
                 let accepted = rejection.is_none();
+                let mut sol = sol;
                 if accepted {
+                    let calibration_cov = self.calibrate(t, &mut sol);
                     self.recent_fixes.push_back((t, sol.pose.position.0));
                     while self.recent_fixes.front().is_some_and(|f| t - f.0 > VELOCITY_WINDOW_S) {
                         self.recent_fixes.pop_front();
@@ -353,7 +446,7 @@ impl<'a> Navigator<'a> {
                     covariance = Some(PoseCovariance {
                         t,
                         position: sol.pose.position.to_geodetic(),
-                        ecef: sol.covariance,
+                        ecef: sol.covariance + calibration_cov,
                     });
                     if !self.params.use_gyro || sol.prior_loosened {
                         self.filter.reset_attitude(&propagated, &att_cov);

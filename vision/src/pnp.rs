@@ -329,36 +329,10 @@ impl Problem<'_> {
         let mut h = Matrix6::zeros();
         let mut g = Vector6::zeros();
         for (x, obs) in self.local.iter().zip(self.pixels) {
-            let v = x - state.c;
-            let p = r_cam_ecef * v;
-            if !(p.z > 0.0) {
-                return None;
-            }
-            let inv_z = 1.0 / p.z;
-            let n = NormalizedPoint::new(p.x * inv_z, p.y * inv_z);
-            let d = cam.distortion.apply(n);
-            let r = Vector2::new(cam.fx * d.x + cam.cx - obs.u, cam.fy * d.y + cam.cy - obs.v);
-            let e2 = r.norm_squared();
-            let (rho, w) = match self.huber_px {
-                Some(k) if e2 > k * k => {
-                    let e = e2.sqrt();
-                    (2.0 * k * e - k * k, k / e)
-                }
-                _ => (e2, 1.0),
-            };
+            let pt = linearize_point(cam, &r_cam_ecef, &(x - state.c), obs)?;
+            let (r, j) = (pt.residual_px, pt.j_pose);
+            let (rho, w) = huber(r.norm_squared(), self.huber_px);
             cost += rho * self.inv_sigma2;
-            // d(pixel)/d(p_cam) = diag(fx, fy) * D(distortion) * d(x/z, y/z)/dp
-            let jd = cam.distortion.jacobian(n);
-            let jn = Matrix2x3::new(inv_z, 0.0, -n.x * inv_z, 0.0, inv_z, -n.y * inv_z);
-            let mut a = jd * jn;
-            a.row_mut(0).scale_mut(cam.fx);
-            a.row_mut(1).scale_mut(cam.fy);
-            // p = R^T (x - c): dp/dtheta = R^T [v]x, dp/dc = -R^T.
-            let b = a * r_cam_ecef;
-            let j_theta = b * v.cross_matrix();
-            let mut j = SMatrix::<f64, 2, 6>::zeros();
-            j.fixed_view_mut::<2, 3>(0, 0).copy_from(&j_theta);
-            j.fixed_view_mut::<2, 3>(0, 3).copy_from(&-b);
             let ws = w * self.inv_sigma2;
             h += j.transpose() * j * ws;
             g += j.transpose() * r * ws;
@@ -380,6 +354,60 @@ impl Problem<'_> {
     fn error_px(&self, state: &State, x: &Vector3<f64>, px: &Pixel) -> f64 {
         let p = state.q.inverse_transform_vector(&(x - state.c));
         self.camera.project(&p).map_or(f64::INFINITY, |q| q.distance_px(px))
+    }
+}
+
+/// One match linearized at a pose (see [`linearize_point`]).
+pub(crate) struct PointLinearization {
+    /// Predicted minus observed pixel.
+    pub residual_px: Vector2<f64>,
+    /// d(residual)/d[dtheta; dp] (the module's perturbation).
+    pub j_pose: SMatrix<f64, 2, 6>,
+    /// The point's distorted normalized coordinates (`u = fx x + cx`).
+    pub distorted: NormalizedPoint,
+}
+
+/// Residual and pose Jacobian of one match; `v` is the point minus the
+/// camera centre (ECEF), `r_cam_ecef` the camera's rotation ECEF -> camera.
+/// `None` behind the camera.
+pub(crate) fn linearize_point(
+    cam: &CameraModel,
+    r_cam_ecef: &Matrix3<f64>,
+    v: &Vector3<f64>,
+    obs: &Pixel,
+) -> Option<PointLinearization> {
+    let p = r_cam_ecef * v;
+    if !(p.z > 0.0) {
+        return None;
+    }
+    let inv_z = 1.0 / p.z;
+    let n = NormalizedPoint::new(p.x * inv_z, p.y * inv_z);
+    let d = cam.distortion.apply(n);
+    let r = Vector2::new(cam.fx * d.x + cam.cx - obs.u, cam.fy * d.y + cam.cy - obs.v);
+    // d(pixel)/d(p_cam) = diag(fx, fy) * D(distortion) * d(x/z, y/z)/dp
+    let jd = cam.distortion.jacobian(n);
+    let jn = Matrix2x3::new(inv_z, 0.0, -n.x * inv_z, 0.0, inv_z, -n.y * inv_z);
+    let mut a = jd * jn;
+    a.row_mut(0).scale_mut(cam.fx);
+    a.row_mut(1).scale_mut(cam.fy);
+    // p = R^T (x - c): dp/dtheta = R^T [v]x, dp/dc = -R^T.
+    let b = a * r_cam_ecef;
+    let j_theta = b * v.cross_matrix();
+    let mut j = SMatrix::<f64, 2, 6>::zeros();
+    j.fixed_view_mut::<2, 3>(0, 0).copy_from(&j_theta);
+    j.fixed_view_mut::<2, 3>(0, 3).copy_from(&-b);
+    Some(PointLinearization { residual_px: r, j_pose: j, distorted: d })
+}
+
+/// Huber loss `rho(e)` of a squared error `e2` with threshold `k` (none:
+/// plain squares) and the IRLS weight `rho'(e) / (2 e)`.
+pub(crate) fn huber(e2: f64, k: Option<f64>) -> (f64, f64) {
+    match k {
+        Some(k) if e2 > k * k => {
+            let e = e2.sqrt();
+            (2.0 * k * e - k * k, k / e)
+        }
+        _ => (e2, 1.0),
     }
 }
 
@@ -409,7 +437,7 @@ fn inverse_left_jacobian(phi: &Vector3<f64>) -> Matrix3<f64> {
 
 /// Inverse of a symmetric positive definite 6x6 matrix, after scaling it to
 /// unit diagonal; `None` when its condition (so scaled) exceeds 1e12.
-fn invert_normalized(h: &Matrix6<f64>) -> Option<Matrix6<f64>> {
+pub(crate) fn invert_normalized(h: &Matrix6<f64>) -> Option<Matrix6<f64>> {
     let diag = h.diagonal();
     if !diag.iter().all(|&d| d > 0.0 && d.is_finite()) {
         return None;

@@ -273,6 +273,32 @@ pub(crate) mod testutil {
         let mut pose = CameraPose::look_at(position, below, north);
         let tilt = random_rotation(rng, tilt_deg.to_radians());
         pose.q_ecef_cam = UnitQuaternion::from_rotation_matrix(&tilt) * pose.q_ecef_cam;
+        scene_from(rng, camera, pose, n, relief_m)
+    }
+
+    /// As [`nadir_scene`], tilted by exactly `tilt_deg` about the local east
+    /// axis (looking north of nadir).
+    pub(crate) fn tilted_scene(
+        rng: &mut Rng,
+        camera: &CameraModel,
+        altitude_m: f64,
+        n: usize,
+        relief_m: f64,
+        tilt_deg: f64,
+    ) -> Scene {
+        let (lat, lon) = (rng.range(30.0, 48.0), rng.range(-120.0, -80.0));
+        let position = Geodetic::new(lat, lon, altitude_m).to_ecef();
+        let below = Geodetic::new(lat, lon, 0.0).to_ecef();
+        let frame = LocalFrame::at(Geodetic::new(lat, lon, 0.0));
+        let north = frame.vector_to_ecef(&Vector3::y());
+        let east = frame.vector_to_ecef(&Vector3::x());
+        let mut pose = CameraPose::look_at(position, below, north);
+        let tilt = UnitQuaternion::from_axis_angle(&Unit::new_normalize(east), tilt_deg.to_radians());
+        pose.q_ecef_cam = tilt * pose.q_ecef_cam;
+        scene_from(rng, camera, pose, n, relief_m)
+    }
+
+    fn scene_from(rng: &mut Rng, camera: &CameraModel, pose: CameraPose, n: usize, relief_m: f64) -> Scene {
         let (mut pixels, mut points) = (Vec::with_capacity(n), Vec::with_capacity(n));
         while points.len() < n {
             let px = Pixel::new(

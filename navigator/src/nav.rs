@@ -243,6 +243,18 @@ const ATTITUDE_GATE_FLOOR_DEG: f64 = 0.05;
 /// degrees of freedom, 99.9%) from the gyro prior means the two disagree:
 /// the frame is refined again with the prior loosened.
 const PRIOR_GATE_CHI2: f64 = 16.27;
+/// One pyramid level's correlation search: the radius (level pixels) and
+/// how far outside the image (full-resolution pixels) a landmark's guessed
+/// position may be (an acquisition's; 0 otherwise).
+#[derive(Clone, Copy, Debug)]
+struct Search {
+    radius: usize,
+    margin_px: f64,
+}
+
+/// A first search radius above this share of the focal length is an
+/// acquisition (see `solve`).
+const ACQUISITION_RADIUS_F: f64 = 0.5;
 /// Huber threshold (px) of the self-calibration's residuals, as the
 /// full-resolution refinement's.
 const HUBER_PX: f64 = 1.0;
@@ -600,7 +612,24 @@ impl<'a> Navigator<'a> {
         let v_sigma = self.velocity_sigma.unwrap_or(self.params.velocity_sigma_m_s);
         let sigma_m = self.sigma_m + v_sigma * (t - self.t).max(0.0);
         let sigma_px = f * (sigma_rad + sigma_m / fp.center_range_m);
-        let radius_full = (2.5 * sigma_px + 3.0).min(f * 0.25);
+        // A search wider than half the focal length (a guess kilometres
+        // off) is an acquisition: it may reach the whole image, and the
+        // landmarks come from the guessed footprint widened by the search,
+        // predicted even where the guess puts them outside the image. Short
+        // of that the search stops at a quarter of the focal length, and a
+        // failed coarse level falls back to bounded finer searches.
+        let (w, h) = (self.camera.width as f64, self.camera.height as f64);
+        let wanted = 2.5 * sigma_px + 3.0;
+        let acquisition = wanted > f * ACQUISITION_RADIUS_F;
+        let radius_full = if acquisition { wanted.min(w.max(h)) } else { wanted.min(f * 0.25) };
+        let margin_px = if acquisition { radius_full } else { 0.0 };
+        let fp = if margin_px > 0.0 {
+            let metres = margin_px / f * fp.center_range_m;
+            debug!("t {t:.3}: acquisition: search radius {radius_full:.0} px, footprint widened by {metres:.0} m");
+            crate::footprint::Footprint { bbox: widened_box(&fp.bbox, metres), ..fp }
+        } else {
+            fp
+        };
         // Coarsest level whose search radius fits, then the finest.
         let mut k = 0;
         while k + 1 < pyr.levels.len() && radius_full / (1u32 << k) as f64 > self.params.max_radius_px as f64
@@ -608,7 +637,7 @@ impl<'a> Navigator<'a> {
             k += 1;
         }
         // A coarse level needs enough landmarks in view, large enough to correlate.
-        while k > 0 && self.usable_landmarks(&fp, guess, k) < MIN_COARSE_LANDMARKS {
+        while k > 0 && self.usable_landmarks(&fp, guess, k, margin_px) < MIN_COARSE_LANDMARKS {
             k -= 1;
         }
         let mut pose = *guess;
@@ -619,11 +648,27 @@ impl<'a> Navigator<'a> {
         // gyro prior's gate); a weak coarse solution is not followed: the
         // next level searches the same ground radius around the guess.
         for level in (0..=k).rev() {
-            match self.stage(&pyr, &pose, &fp, level, radius, prior.as_ref()) {
+            // Below an accepted coarse level the search is local again.
+            let margin = if best.is_some() { 0.0 } else { margin_px };
+            match self.stage(&pyr, &pose, &fp, level, Search { radius, margin_px: margin }, prior.as_ref()) {
                 Ok(sol) if level == 0 || (sol.inliers >= self.params.min_inliers && !sol.prior_loosened) => {
                     pose = sol.pose;
                     best = Some(sol);
                     radius = 5;
+                }
+                // An acquisition stands on its coarse level, the one search
+                // that covered the whole uncertainty: a finer level's bounded
+                // search around the guess would find whatever aliases the
+                // landmarks there (a repeated pattern: measured on the
+                // synthetic map's road grid, fixes 1.1-1.6 km off with 40-95
+                // inliers), and nothing tells it from the truth.
+                Ok(sol) if margin_px > 0.0 && best.is_none() => {
+                    debug!("level {level}: acquisition failed ({} inliers)", sol.inliers);
+                    return Err(sol.n_matches);
+                }
+                Err(n) if margin_px > 0.0 && best.is_none() => {
+                    debug!("level {level}: acquisition failed ({n} matches)");
+                    return Err(n);
                 }
                 Ok(sol) => {
                     debug!("level {level}: weak solution ({} inliers) not followed", sol.inliers);
@@ -654,9 +699,10 @@ impl<'a> Navigator<'a> {
         pose: &CameraPose,
         fp: &crate::footprint::Footprint,
         level: usize,
-        radius: usize,
+        search: Search,
         prior: Option<&AttitudePrior>,
     ) -> Result<Solution, usize> {
+        let Search { radius, margin_px } = search;
         let scale = (1u32 << level) as f64;
         // Oblique views span many ground resolutions: query the levels around
         // the centre's and keep each template only where its level fits the
@@ -674,7 +720,7 @@ impl<'a> Navigator<'a> {
         templates.retain(|t| {
             crate::view::level_fits(&self.levels, t, crate::view::local_gsd_m(&self.camera, pose, t) * scale)
         });
-        let chosen = self.spread(&templates, pose, scale);
+        let chosen = self.spread(&templates, pose, scale, margin_px);
         let img = &pyr.levels[level];
         let view = ImageView::new(img.width, img.height, &img.data);
         let predicted: Vec<Predicted> = chosen
@@ -782,7 +828,13 @@ impl<'a> Navigator<'a> {
 
     /// Landmarks of the level pyramid level `k` would use that land in the
     /// image at least `MIN_PATCH_PX` level pixels wide.
-    fn usable_landmarks(&self, fp: &crate::footprint::Footprint, pose: &CameraPose, k: usize) -> usize {
+    fn usable_landmarks(
+        &self,
+        fp: &crate::footprint::Footprint,
+        pose: &CameraPose,
+        k: usize,
+        margin_px: f64,
+    ) -> usize {
         let scale = (1u32 << k) as f64;
         let db_level = self.level_for(fp.center_gsd_m * scale);
         if db_level.span_px(fp.center_gsd_m * scale) < MIN_PATCH_PX {
@@ -792,7 +844,7 @@ impl<'a> Navigator<'a> {
         let (w, h) = (self.camera.width as f64, self.camera.height as f64);
         ts.iter()
             .filter_map(|t| pose.project(&self.camera, &t.center_ecef()))
-            .filter(|p| p.u >= 0.0 && p.v >= 0.0 && p.u < w && p.v < h)
+            .filter(|p| p.u >= -margin_px && p.v >= -margin_px && p.u < w + margin_px && p.v < h + margin_px)
             .count()
     }
 
@@ -804,15 +856,25 @@ impl<'a> Navigator<'a> {
     /// templates are four times as many but half as wide) and, unless the
     /// database was lit for the flight's sun, its stability under another
     /// sun (`1 - shading_weight * shading_share`).
-    fn spread<'t>(&self, templates: &'t [Template], pose: &CameraPose, scale: f64) -> Vec<&'t Template> {
+    /// Landmarks up to `margin_px` outside the image count (in its edge
+    /// cells): an acquisition's search reaches in from there.
+    fn spread<'t>(
+        &self,
+        templates: &'t [Template],
+        pose: &CameraPose,
+        scale: f64,
+        margin_px: f64,
+    ) -> Vec<&'t Template> {
         let (gx, gy) = self.params.grid;
         let (w, h) = (self.camera.width as f64, self.camera.height as f64);
         let mut cells: Vec<Vec<(f32, &Template)>> = vec![Vec::new(); gx * gy];
         for t in templates {
             let Some(p) = pose.project(&self.camera, &t.center_ecef()) else { continue };
-            if !(p.u >= 0.0 && p.v >= 0.0 && p.u < w && p.v < h) {
+            let m = margin_px;
+            if !(p.u >= -m && p.v >= -m && p.u < w + m && p.v < h + m) {
                 continue;
             }
+            // `as usize` saturates: left of the image is cell 0.
             let (cx, cy) = (((p.u / w) * gx as f64) as usize, ((p.v / h) * gy as f64) as usize);
             let q = &t.quality;
             let span_px =
@@ -913,9 +975,23 @@ impl Solution {
     }
 }
 
-/// Least-squares velocity (m/s) of timed positions, with its 1-sigma error
-/// (from the fit's residuals, at least [`VELOCITY_KNOWN_SIGMA_M_S`]); `None`
-/// when they span less than [`VELOCITY_MIN_SPAN_S`] or number fewer than 3.
+/// `b` widened by `metres` on every side (degrees at the box's middle
+/// latitude), clamped to the globe.
+fn widened_box(b: &trn_landmark::GeoBox, metres: f64) -> trn_landmark::GeoBox {
+    if b.crosses_antimeridian() {
+        return *b;
+    }
+    let lat = 0.5 * (b.min_lat_deg + b.max_lat_deg);
+    let dlat = (metres / 111_320.0).min(90.0);
+    let dlon = (metres / (111_320.0 * lat.to_radians().cos().max(0.01))).min(180.0);
+    trn_landmark::GeoBox::new(
+        (b.min_lon_deg - dlon).max(-180.0),
+        (b.min_lat_deg - dlat).max(-90.0),
+        (b.max_lon_deg + dlon).min(180.0),
+        (b.max_lat_deg + dlat).min(90.0),
+    )
+}
+
 /// The search radius at the next finer pyramid level after a coarse level
 /// gave no trustworthy pose: the same ground radius (twice the pixels), but
 /// at most twice `max_radius_px`. Beyond that the coarser level has searched
@@ -926,6 +1002,9 @@ fn widened(radius: usize, max_radius_px: usize) -> usize {
     (radius * 2).min(2 * max_radius_px)
 }
 
+/// Least-squares velocity (m/s) of timed positions, with its 1-sigma error
+/// (from the fit's residuals, at least [`VELOCITY_KNOWN_SIGMA_M_S`]); `None`
+/// when they span less than [`VELOCITY_MIN_SPAN_S`] or number fewer than 3.
 fn velocity_fit(fixes: &std::collections::VecDeque<(f64, Vector3<f64>)>) -> Option<(Vector3<f64>, f64)> {
     let n = fixes.len();
     let (t0, t1) = (fixes.front()?.0, fixes.back()?.0);

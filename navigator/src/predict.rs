@@ -200,20 +200,31 @@ pub fn predict(
     let half = (side / 2) as isize;
     let (x0, y0) = (c.u.round() as isize - half, c.v.round() as isize - half);
     let (lw, lh, _) = &lut.levels[level];
+    // A centre outside the image (a search from a guess far off, whose
+    // window reaches into the image) gets its whole patch, the rays of the
+    // pixels beyond the image from the camera model; one inside keeps only
+    // the part in the image.
+    let (w, h) = (camera.width as f64, camera.height as f64);
+    let centre_outside = !(center_px.u >= 0.0 && center_px.v >= 0.0 && center_px.u < w && center_px.v < h);
     let mut data = vec![0f32; side * side];
     let mut mask = vec![false; side * side];
     let tw_i = t.width_px as usize;
     for j in 0..side {
         let y = y0 + j as isize;
-        if y < 0 || y >= *lh as isize {
+        if !centre_outside && (y < 0 || y >= *lh as isize) {
             continue;
         }
         for i in 0..side {
             let x = x0 + i as isize;
-            if x < 0 || x >= *lw as isize {
+            let n = if x >= 0 && y >= 0 && x < *lw as isize && y < *lh as isize {
+                lut.at(level, x as usize, y as usize)
+            } else if centre_outside {
+                let q = camera
+                    .pixel_to_normalized(crate::image::from_level(Pixel::new(x as f64, y as f64), level));
+                [q.x as f32, q.y as f32]
+            } else {
                 continue;
-            }
-            let n = lut.at(level, x as usize, y as usize);
+            };
             let (tc, tr) = match &relief {
                 None => {
                     let m = a_inv * Vector3::new(n[0] as f64, n[1] as f64, 1.0);
@@ -377,5 +388,53 @@ mod tests {
         eprintln!("forward error: relief-aware {with_relief:.2}, planar {planar:.2} grey levels");
         assert!(with_relief < 6.0, "relief-aware prediction off by {with_relief:.1} grey levels");
         assert!(planar > 2.0 * with_relief, "plane {planar:.1} vs relief {with_relief:.1}");
+    }
+
+    /// A centre the guess puts outside the image (an acquisition's search
+    /// reaches in from there) gets its whole patch, the same as the one an
+    /// inside view of it gives; one inside keeps only what the image holds.
+    #[test]
+    fn a_centre_outside_the_image_gets_its_whole_patch() {
+        let camera = CameraModel::from_fov(640, 480, 40.0);
+        let lut = UndistortLut::new(&camera, 1);
+        let t = ridge_template(0.0);
+        let centre = t.center_ecef();
+        let frame = t.local_frame();
+        let eye = frame.to_ecef(Enu::new(0.0, 0.0, 6000.0));
+        let north = frame.to_ecef(Enu::new(0.0, 1.0, 0.0)).0 - centre.0;
+        let inside = CameraPose::look_at(eye, centre, north);
+        // Turned 25 degrees about the camera's y axis: the centre leaves the
+        // image on the left (half the field of view is 20 degrees).
+        let turn =
+            nalgebra::UnitQuaternion::from_axis_angle(&nalgebra::Vector3::y_axis(), 25f64.to_radians());
+        let outside = CameraPose { q_ecef_cam: inside.q_ecef_cam * turn, ..inside };
+        let p_in = predict(&t, &inside, &camera, &lut, 0, 63, 85.0).expect("inside");
+        let p_out = predict(&t, &outside, &camera, &lut, 0, 63, 85.0).expect("outside");
+        assert!(p_out.center_px.u < 0.0, "{:?}", p_out.center_px);
+        let valid = |p: &Predicted| {
+            p.patch.mask.as_ref().map_or(p.patch.data.len(), |m| m.iter().filter(|&&b| b).count())
+        };
+        assert_eq!(p_out.patch.width, p_in.patch.width);
+        assert!(valid(&p_out) as f64 >= 0.9 * valid(&p_in) as f64, "{} of {}", valid(&p_out), valid(&p_in));
+        // Straddling the left edge: only the inside part.
+        let edge =
+            nalgebra::UnitQuaternion::from_axis_angle(&nalgebra::Vector3::y_axis(), 19.5f64.to_radians());
+        let p_edge = predict(
+            &t,
+            &CameraPose { q_ecef_cam: inside.q_ecef_cam * edge, ..inside },
+            &camera,
+            &lut,
+            0,
+            63,
+            85.0,
+        )
+        .expect("edge");
+        assert!(p_edge.center_px.u >= 0.0 && p_edge.center_px.u < 10.0, "{:?}", p_edge.center_px);
+        assert!(
+            (valid(&p_edge) as f64) < 0.8 * valid(&p_in) as f64,
+            "{} of {}",
+            valid(&p_edge),
+            valid(&p_in)
+        );
     }
 }

@@ -214,6 +214,24 @@ fn copy_flight(from: &Path, to: &Path) {
     }
 }
 
+/// A copy of the fixture's flight under `name` with its `init.json` changed
+/// by `edit`; returns the copy's folder and its flight folder.
+fn with_init(
+    s: &NavFixture,
+    name: &str,
+    edit: impl FnOnce(&mut serde_json::Value),
+) -> (std::path::PathBuf, std::path::PathBuf) {
+    let dir = s.root().join(name);
+    let flight = dir.join("flight");
+    copy_flight(&s.flight, &flight);
+    let init_path = flight.join("init.json");
+    let mut init: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&init_path).unwrap()).unwrap();
+    edit(&mut init);
+    std::fs::write(&init_path, init.to_string()).unwrap();
+    (dir, flight)
+}
+
 /// (t, status, inliers) of each poses.csv row.
 fn rows(poses: &Path) -> Vec<(f64, String, u32)> {
     std::fs::read_to_string(poses)
@@ -253,20 +271,15 @@ fn rejected_solutions_are_counted_and_the_next_image_is_processed_at_once() {
 #[test]
 fn the_first_fix_is_checked_and_the_height_gate_never_locks_out() {
     let s = nav_fixture();
-    let dir = s.root().join("high-init");
-    let flight = dir.join("flight");
-    copy_flight(&s.flight, &flight);
     // The initial guess 400 m too high (370 m above the truth with the
     // scenario's own 30 m error), said to be good to 100 m: the first
     // solutions (at the true height, 70-77 inliers) are farther from it than
     // the 30 m limit plus three sigmas (330 m); the gate then widens by 3 x
     // 20 m/s per second until they pass, after about 0.7 s.
-    let init_path = flight.join("init.json");
-    let mut init: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&init_path).unwrap()).unwrap();
-    let h = init["h"].as_f64().unwrap();
-    init["h"] = serde_json::json!(h + 400.0);
-    std::fs::write(&init_path, init.to_string()).unwrap();
+    let (dir, flight) = with_init(&s, "high-init", |init| {
+        let h = init["h"].as_f64().unwrap();
+        init["h"] = serde_json::json!(h + 400.0);
+    });
     let poses = dir.join("poses.csv");
     let s2 = NavFixture { dir: tempfile::tempdir().unwrap(), db: s.db.clone(), flight: flight.clone() };
     let o = navigate(&s2, &poses, &["--max-height-jump", "30", "--init-sigma-m", "100"]);
@@ -303,17 +316,12 @@ fn the_first_fix_is_checked_and_the_height_gate_never_locks_out() {
 #[test]
 fn a_guess_kilometres_off_on_a_repeated_pattern_gives_no_wrong_fix() {
     let s = nav_fixture();
-    let dir = s.root().join("far-init");
-    let flight = dir.join("flight");
-    copy_flight(&s.flight, &flight);
-    let init_path = flight.join("init.json");
-    let mut init: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&init_path).unwrap()).unwrap();
-    let (lat, lon) = (init["lat"].as_f64().unwrap(), init["lon"].as_f64().unwrap());
-    // 1060 m north and 1060 m east.
-    init["lat"] = serde_json::json!(lat + 1060.0 / 111_000.0);
-    init["lon"] = serde_json::json!(lon + 1060.0 / (111_000.0 * lat.to_radians().cos()));
-    std::fs::write(&init_path, init.to_string()).unwrap();
+    let (dir, flight) = with_init(&s, "far-init", |init| {
+        let (lat, lon) = (init["lat"].as_f64().unwrap(), init["lon"].as_f64().unwrap());
+        // 1060 m north and 1060 m east.
+        init["lat"] = serde_json::json!(lat + 1060.0 / 111_000.0);
+        init["lon"] = serde_json::json!(lon + 1060.0 / (111_000.0 * lat.to_radians().cos()));
+    });
     let poses = dir.join("poses.csv");
     let s2 = NavFixture { dir: tempfile::tempdir().unwrap(), db: s.db.clone(), flight: flight.clone() };
     let o = navigate(&s2, &poses, &["--init-sigma-m", "1500"]);

@@ -113,11 +113,12 @@ fn relief_hits(
                 lattice[(cj + 1) * nl + ci + 1],
             ];
             let smooth = match corners {
-                [Some(a), Some(b), Some(c), Some(d)] => hit(ci * k + k / 2, cj * k + k / 2).is_some_and(|m| {
-                    let mean = (0.25 * (a.0 + b.0 + c.0 + d.0), 0.25 * (a.1 + b.1 + c.1 + d.1));
-                    (m.0 - mean.0).hypot(m.1 - mean.1) <= tolerance_m
-                })
-                .then_some([a, b, c, d]),
+                [Some(a), Some(b), Some(c), Some(d)] => hit(ci * k + k / 2, cj * k + k / 2)
+                    .is_some_and(|m| {
+                        let mean = (0.25 * (a.0 + b.0 + c.0 + d.0), 0.25 * (a.1 + b.1 + c.1 + d.1));
+                        (m.0 - mean.0).hypot(m.1 - mean.1) <= tolerance_m
+                    })
+                    .then_some([a, b, c, d]),
                 _ => None,
             };
             for j in cj * k..((cj + 1) * k).min(side) {
@@ -272,7 +273,8 @@ pub fn predict(
         if x >= 0 && y >= 0 && x < *lw as isize && y < *lh as isize {
             Some(lut.at(level, x as usize, y as usize))
         } else if centre_outside {
-            let q = camera.pixel_to_normalized(crate::image::from_level(Pixel::new(x as f64, y as f64), level));
+            let q =
+                camera.pixel_to_normalized(crate::image::from_level(Pixel::new(x as f64, y as f64), level));
             Some([q.x as f32, q.y as f32])
         } else {
             None
@@ -523,9 +525,8 @@ mod tests {
         assert!(marched < side * side / 4, "{marched} marches for {} pixels", side * side);
         // An occlusion edge at column 10 (the far slope jumps 500 m away) and
         // sky below row 17: those cells are marched, so every pixel is exact.
-        let exact = |i: usize, j: usize| {
-            (j < 17).then(|| (i as f64 + if i >= 10 { 500.0 } else { 0.0 }, j as f64))
-        };
+        let exact =
+            |i: usize, j: usize| (j < 17).then(|| (i as f64 + if i >= 10 { 500.0 } else { 0.0 }, j as f64));
         let out = relief_hits(side, 0.1, exact);
         for j in 0..side {
             for i in 0..side {

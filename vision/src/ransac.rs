@@ -266,11 +266,7 @@ pub(crate) mod testutil {
         relief_m: f64,
         tilt_deg: f64,
     ) -> Scene {
-        let (lat, lon) = (rng.range(30.0, 48.0), rng.range(-120.0, -80.0));
-        let position = Geodetic::new(lat, lon, altitude_m).to_ecef();
-        let below = Geodetic::new(lat, lon, 0.0).to_ecef();
-        let north = LocalFrame::at(Geodetic::new(lat, lon, 0.0)).vector_to_ecef(&Vector3::y());
-        let mut pose = CameraPose::look_at(position, below, north);
+        let (mut pose, _) = nadir_pose(rng, altitude_m);
         let tilt = random_rotation(rng, tilt_deg.to_radians());
         pose.q_ecef_cam = UnitQuaternion::from_rotation_matrix(&tilt) * pose.q_ecef_cam;
         scene_from(rng, camera, pose, n, relief_m)
@@ -286,16 +282,22 @@ pub(crate) mod testutil {
         relief_m: f64,
         tilt_deg: f64,
     ) -> Scene {
-        let (lat, lon) = (rng.range(30.0, 48.0), rng.range(-120.0, -80.0));
-        let position = Geodetic::new(lat, lon, altitude_m).to_ecef();
-        let below = Geodetic::new(lat, lon, 0.0).to_ecef();
-        let frame = LocalFrame::at(Geodetic::new(lat, lon, 0.0));
-        let north = frame.vector_to_ecef(&Vector3::y());
+        let (mut pose, frame) = nadir_pose(rng, altitude_m);
         let east = frame.vector_to_ecef(&Vector3::x());
-        let mut pose = CameraPose::look_at(position, below, north);
         let tilt = UnitQuaternion::from_axis_angle(&Unit::new_normalize(east), tilt_deg.to_radians());
         pose.q_ecef_cam = tilt * pose.q_ecef_cam;
         scene_from(rng, camera, pose, n, relief_m)
+    }
+
+    /// A camera `altitude_m` above a random place over the US looking
+    /// straight down, north up, and the local frame on the ground below it.
+    fn nadir_pose(rng: &mut Rng, altitude_m: f64) -> (CameraPose, LocalFrame) {
+        let (lat, lon) = (rng.range(30.0, 48.0), rng.range(-120.0, -80.0));
+        let position = Geodetic::new(lat, lon, altitude_m).to_ecef();
+        let ground = Geodetic::new(lat, lon, 0.0);
+        let frame = LocalFrame::at(ground);
+        let north = frame.vector_to_ecef(&Vector3::y());
+        (CameraPose::look_at(position, ground.to_ecef(), north), frame)
     }
 
     fn scene_from(rng: &mut Rng, camera: &CameraModel, pose: CameraPose, n: usize, relief_m: f64) -> Scene {

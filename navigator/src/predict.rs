@@ -84,7 +84,7 @@ impl Relief<'_> {
 const RELIEF_CELL_PX: usize = 4;
 /// A cell is interpolated when the exact hit at its centre is within this
 /// share of a template pixel of its corners' bilinear mean.
-const RELIEF_INTERPOLATION_TOLERANCE: f64 = 0.1;
+const RELIEF_INTERPOLATION_TOLERANCE: f64 = 0.25;
 
 /// The terrain hit `(east, north)` of every pixel of a `side`-square patch
 /// (row-major), `hit(i, j)` being the exact one (a ray march). The march is

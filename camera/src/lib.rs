@@ -15,9 +15,10 @@
 //!
 //! [`CameraConfig`] is the flight's `camera.json` (a model plus the IMU
 //! mounting); [`CameraPose`] places a camera in ECEF, to project ECEF points
-//! and cast ECEF rays.
+//! and cast ECEF rays; [`IntrinsicsCorrection`] is a focal length and
+//! principal point error (the simulator's, or the navigator's estimate).
 
-use nalgebra::{Quaternion, UnitQuaternion};
+use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 
 mod model;
 mod pose;
@@ -35,4 +36,36 @@ pub fn quat_from_wxyz(q: [f64; 4]) -> UnitQuaternion<f64> {
 /// kept as is (`q` and `-q` are the same rotation).
 pub fn quat_to_wxyz(q: &UnitQuaternion<f64>) -> [f64; 4] {
     [q.w, q.i, q.j, q.k]
+}
+
+/// A correction of a camera's intrinsics: the focal lengths scaled by
+/// `1 + focal_rel` and the principal point moved by `(du, dv)` pixels (a
+/// calibration error, or a self-calibration's estimate of one).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct IntrinsicsCorrection {
+    /// Relative focal length change: `fx, fy` times `1 + focal_rel`.
+    pub focal_rel: f64,
+    /// Principal point shift along u and v (pixels).
+    pub principal_du_px: f64,
+    pub principal_dv_px: f64,
+}
+
+impl IntrinsicsCorrection {
+    pub fn to_vector(self) -> Vector3<f64> {
+        Vector3::new(self.focal_rel, self.principal_du_px, self.principal_dv_px)
+    }
+
+    pub fn from_vector(v: &Vector3<f64>) -> Self {
+        Self { focal_rel: v.x, principal_du_px: v.y, principal_dv_px: v.z }
+    }
+
+    /// `camera` with the correction applied.
+    pub fn apply(&self, camera: &CameraModel) -> CameraModel {
+        let mut m = *camera;
+        m.fx *= 1.0 + self.focal_rel;
+        m.fy *= 1.0 + self.focal_rel;
+        m.cx += self.principal_du_px;
+        m.cy += self.principal_dv_px;
+        m
+    }
 }

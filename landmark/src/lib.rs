@@ -84,6 +84,27 @@ impl GeoBox {
         (b.min_lon_deg < b.max_lon_deg && b.min_lat_deg < b.max_lat_deg).then_some(b)
     }
 
+    /// The box grown by `dlon_deg` and `dlat_deg` on every side, clamped to
+    /// the globe; an antimeridian-crossing box is returned as it is.
+    pub fn grown(&self, dlon_deg: f64, dlat_deg: f64) -> GeoBox {
+        if self.crosses_antimeridian() {
+            return *self;
+        }
+        GeoBox::new(
+            (self.min_lon_deg - dlon_deg).max(-180.0),
+            (self.min_lat_deg - dlat_deg).max(-90.0),
+            (self.max_lon_deg + dlon_deg).min(180.0),
+            (self.max_lat_deg + dlat_deg).min(90.0),
+        )
+    }
+
+    /// [`GeoBox::grown`] by `metres` on every side (degrees at the box's
+    /// middle latitude, [`trn_geodesy::metres_per_degree`]).
+    pub fn grown_m(&self, metres: f64) -> GeoBox {
+        let (m_lat, m_lon) = trn_geodesy::metres_per_degree(0.5 * (self.min_lat_deg + self.max_lat_deg));
+        self.grown((metres / m_lon.max(1.0)).min(180.0), (metres / m_lat).min(90.0))
+    }
+
     pub fn contains(&self, lon_deg: f64, lat_deg: f64) -> bool {
         self.halves().any(|b| {
             lon_deg >= b.min_lon_deg
@@ -327,6 +348,30 @@ mod tests {
         let pit = grid(9, 10.0, |e, n| if e.abs() < 11.0 && n.abs() < 11.0 { -40.0 } else { 0.0 });
         assert!(pit.hidden_share_best_side(45.0) > 0.0);
         assert_eq!(pit.hidden_share_best_side(5.0), 0.0);
+    }
+
+    #[test]
+    fn geobox_grows_by_degrees_and_metres_within_the_globe() {
+        let b = GeoBox::new(-118.6, 37.2, -118.4, 37.4);
+        let g = b.grown(0.1, 0.2);
+        let want = [-118.7, 37.0, -118.3, 37.6];
+        let got = [g.min_lon_deg, g.min_lat_deg, g.max_lon_deg, g.max_lat_deg];
+        assert!(got.iter().zip(want).all(|(a, b)| (a - b).abs() < 1e-12), "{g:?}");
+        // 10 km: against geodesic distances along a meridian and a parallel.
+        let g = b.grown_m(10_000.0);
+        let south = Geodetic::new(g.min_lat_deg, -118.5, 0.0).to_ecef();
+        let south_edge = Geodetic::new(b.min_lat_deg, -118.5, 0.0).to_ecef();
+        assert!((south.distance_m(&south_edge) - 10_000.0).abs() < 20.0, "{g:?}");
+        let west = Geodetic::new(37.3, g.min_lon_deg, 0.0).to_ecef();
+        let west_edge = Geodetic::new(37.3, b.min_lon_deg, 0.0).to_ecef();
+        assert!((west.distance_m(&west_edge) - 10_000.0).abs() < 20.0, "{g:?}");
+        // Clamped at the poles and the antimeridian; a crossing box stays.
+        assert_eq!(
+            GeoBox::new(179.0, 89.0, 179.5, 89.5).grown(2.0, 2.0),
+            GeoBox::new(177.0, 87.0, 180.0, 90.0)
+        );
+        let crossing = GeoBox::new(179.0, 0.0, -179.0, 1.0);
+        assert_eq!(crossing.grown_m(1000.0), crossing);
     }
 
     #[test]

@@ -549,20 +549,10 @@ impl<'a> Navigator<'a> {
         let hit = cache.get(&level).is_some_and(|(b, _)| inside(b));
         if !hit {
             // Half the box's size again on every side.
-            let (dw, dh) = (
+            let big = bbox.grown(
                 0.5 * (bbox.max_lon_deg - bbox.min_lon_deg).abs(),
                 0.5 * (bbox.max_lat_deg - bbox.min_lat_deg),
             );
-            let big = if bbox.crosses_antimeridian() {
-                *bbox
-            } else {
-                trn_landmark::GeoBox::new(
-                    (bbox.min_lon_deg - dw).max(-180.0),
-                    (bbox.min_lat_deg - dh).max(-90.0),
-                    (bbox.max_lon_deg + dw).min(180.0),
-                    (bbox.max_lat_deg + dh).min(90.0),
-                )
-            };
             let ts = match self.lighting {
                 0 => self.source.query(&big, level)?,
                 k => self.source.query_lit(&big, level, k)?,
@@ -626,7 +616,7 @@ impl<'a> Navigator<'a> {
         let fp = if margin_px > 0.0 {
             let metres = margin_px / f * fp.center_range_m;
             debug!("t {t:.3}: acquisition: search radius {radius_full:.0} px, footprint widened by {metres:.0} m");
-            crate::footprint::Footprint { bbox: widened_box(&fp.bbox, metres), ..fp }
+            crate::footprint::Footprint { bbox: fp.bbox.grown_m(metres), ..fp }
         } else {
             fp
         };
@@ -973,23 +963,6 @@ impl Solution {
     fn position_covariance(&self) -> Matrix3<f64> {
         self.covariance.fixed_view::<3, 3>(3, 3).into_owned()
     }
-}
-
-/// `b` widened by `metres` on every side (degrees at the box's middle
-/// latitude), clamped to the globe.
-fn widened_box(b: &trn_landmark::GeoBox, metres: f64) -> trn_landmark::GeoBox {
-    if b.crosses_antimeridian() {
-        return *b;
-    }
-    let lat = 0.5 * (b.min_lat_deg + b.max_lat_deg);
-    let dlat = (metres / 111_320.0).min(90.0);
-    let dlon = (metres / (111_320.0 * lat.to_radians().cos().max(0.01))).min(180.0);
-    trn_landmark::GeoBox::new(
-        (b.min_lon_deg - dlon).max(-180.0),
-        (b.min_lat_deg - dlat).max(-90.0),
-        (b.max_lon_deg + dlon).min(180.0),
-        (b.max_lat_deg + dlat).min(90.0),
-    )
 }
 
 /// The search radius at the next finer pyramid level after a coarse level

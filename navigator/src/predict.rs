@@ -280,31 +280,13 @@ pub fn predict(
             None
         }
     };
-    // The template pixel (column, row) each patch pixel sees, through the
-    // relief (its terrain hit, see `relief_hits`) or the plane's homography.
-    let hits: Vec<Option<(f64, f64)>> = match &relief {
-        Some(rl) => relief_hits(side, RELIEF_INTERPOLATION_TOLERANCE * t.gsd_m, |i, j| {
-            let n = ray(x0 + i as isize, y0 + j as isize)?;
-            rl.hit(n[0] as f64, n[1] as f64)
-        })
-        .into_iter()
-        .map(|h| h.map(|(e, nn)| (e / t.gsd_m + (tw - 1.0) / 2.0, (th - 1.0) / 2.0 - nn / t.gsd_m)))
-        .collect(),
-        None => (0..side * side)
-            .map(|k| {
-                let n = ray(x0 + (k % side) as isize, y0 + (k / side) as isize)?;
-                let m = a_inv * Vector3::new(n[0] as f64, n[1] as f64, 1.0);
-                (m.z > 0.0).then(|| (m.x / m.z, m.y / m.z))
-            })
-            .collect(),
-    };
     let mut data = vec![0f32; side * side];
     let mut mask = vec![false; side * side];
     let tw_i = t.width_px as usize;
-    for (k, hit) in hits.iter().enumerate() {
-        let Some((tc, tr)) = *hit else { continue };
+    // Patch pixel `k` shows the template at pixel (column, row) `(tc, tr)`.
+    let mut sample = |k: usize, tc: f64, tr: f64| {
         if !(tc >= 0.0 && tr >= 0.0 && tc <= tw - 1.0 && tr <= th - 1.0) {
-            continue;
+            return;
         }
         let (ic, ir) = ((tc as usize).min(tw_i - 2), (tr as usize).min(t.height_px as usize - 2));
         let (fc, fr) = ((tc - ic as f64) as f32, (tr - ir as f64) as f32);
@@ -312,6 +294,30 @@ pub fn predict(
         data[k] = (px(ic, ir) * (1.0 - fc) + px(ic + 1, ir) * fc) * (1.0 - fr)
             + (px(ic, ir + 1) * (1.0 - fc) + px(ic + 1, ir + 1) * fc) * fr;
         mask[k] = true;
+    };
+    match &relief {
+        // Through the relief: each pixel's terrain hit (see `relief_hits`).
+        Some(rl) => {
+            let hits = relief_hits(side, RELIEF_INTERPOLATION_TOLERANCE * t.gsd_m, |i, j| {
+                let n = ray(x0 + i as isize, y0 + j as isize)?;
+                rl.hit(n[0] as f64, n[1] as f64)
+            });
+            for (k, hit) in hits.into_iter().enumerate() {
+                if let Some((e, nn)) = hit {
+                    sample(k, e / t.gsd_m + (tw - 1.0) / 2.0, (th - 1.0) / 2.0 - nn / t.gsd_m);
+                }
+            }
+        }
+        // Through the plane's homography.
+        None => {
+            for k in 0..side * side {
+                let Some(n) = ray(x0 + (k % side) as isize, y0 + (k / side) as isize) else { continue };
+                let m = a_inv * Vector3::new(n[0] as f64, n[1] as f64, 1.0);
+                if m.z > 0.0 {
+                    sample(k, m.x / m.z, m.y / m.z);
+                }
+            }
+        }
     }
     // Enough of the template must land in the image: a third of its
     // projected area (a foreshortened template fills little of its square

@@ -148,11 +148,12 @@ impl CameraError {
 
     /// The true camera behind a nominal model.
     pub fn apply(&self, nominal: &CameraModel) -> CameraModel {
-        let mut m = *nominal;
-        m.fx *= 1.0 + self.focal_rel;
-        m.fy *= 1.0 + self.focal_rel;
-        m.cx += self.principal_du_px;
-        m.cy += self.principal_dv_px;
+        let mut m = trn_camera::IntrinsicsCorrection {
+            focal_rel: self.focal_rel,
+            principal_du_px: self.principal_du_px,
+            principal_dv_px: self.principal_dv_px,
+        }
+        .apply(nominal);
         m.distortion.k1 += self.k1;
         m.distortion.k2 += self.k2;
         m

@@ -31,40 +31,11 @@
 //! rotation of the camera.
 
 use nalgebra::{Matrix3, SMatrix, Vector3};
+pub use trn_camera::IntrinsicsCorrection;
 use trn_camera::{CameraModel, CameraPose, Pixel};
 use trn_geodesy::Ecef;
 
 use crate::pnp::{huber, invert_normalized, linearize_point};
-
-/// A correction of a camera's intrinsics (see the module docs).
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct IntrinsicsCorrection {
-    /// Relative focal length change: `fx, fy` times `1 + focal_rel`.
-    pub focal_rel: f64,
-    /// Principal point shift along u and v (pixels).
-    pub principal_du_px: f64,
-    pub principal_dv_px: f64,
-}
-
-impl IntrinsicsCorrection {
-    pub fn to_vector(self) -> Vector3<f64> {
-        Vector3::new(self.focal_rel, self.principal_du_px, self.principal_dv_px)
-    }
-
-    pub fn from_vector(v: &Vector3<f64>) -> Self {
-        Self { focal_rel: v.x, principal_du_px: v.y, principal_dv_px: v.z }
-    }
-
-    /// `camera` with the correction applied.
-    pub fn apply(&self, camera: &CameraModel) -> CameraModel {
-        let mut m = *camera;
-        m.fx *= 1.0 + self.focal_rel;
-        m.fy *= 1.0 + self.focal_rel;
-        m.cx += self.principal_du_px;
-        m.cy += self.principal_dv_px;
-        m
-    }
-}
 
 /// One frame's evidence on a correction of the camera's intrinsics, pose
 /// eliminated; vectors and matrices in the order of
@@ -80,9 +51,6 @@ pub struct FrameCalibration {
     /// How the best pose `[dtheta (rad, ECEF); dp (m, ECEF)]` moves per unit
     /// of correction: `-H_pp^-1 H_pc`.
     pub pose_sensitivity: SMatrix<f64, 6, 3>,
-    /// Covariance of the pose `[dtheta; dp]` with the intrinsics known
-    /// (`H_pp^-1`).
-    pub pose_covariance: nalgebra::Matrix6<f64>,
 }
 
 /// [`FrameCalibration`] of `camera` at `pose` from matched pixels and their
@@ -139,8 +107,7 @@ pub fn frame_calibration(
     let h_pp = h.fixed_view::<6, 6>(0, 0).into_owned();
     let h_pc = h.fixed_view::<6, 3>(0, 6).into_owned();
     let h_cc = h.fixed_view::<3, 3>(6, 6).into_owned();
-    let pose_covariance = invert_normalized(&h_pp)?;
-    let pose_sensitivity = -pose_covariance * h_pc;
+    let pose_sensitivity = -invert_normalized(&h_pp)? * h_pc;
     let information = h_cc + h_pc.transpose() * pose_sensitivity;
     let g_p = g.fixed_rows::<6>(0).into_owned();
     let gradient = g.fixed_rows::<3>(6).into_owned() + pose_sensitivity.transpose() * g_p;
@@ -148,7 +115,6 @@ pub fn frame_calibration(
         information: (information + information.transpose()) * 0.5,
         gradient,
         pose_sensitivity,
-        pose_covariance,
     })
 }
 

@@ -309,6 +309,27 @@ struct NavigateArgs {
     /// the database's lighting is not the flight's sun (0: ignored).
     #[arg(long, default_value_t = 0.5, value_parser = parse_share)]
     shading_weight: f64,
+    /// How the matches meet the inertial sensors: `tight` (an inertial
+    /// filter updated with each frame's matches), `loose` (updated with each
+    /// frame's image-only pose) or `fixes` (no inertial filter: each
+    /// frame's pose is its own fix, the gyro carries the attitude).
+    #[arg(long, value_enum, default_value_t = FilterArg::Tight)]
+    filter: FilterArg,
+    /// Velocity uncertainty at the start (m/s, 1 sigma per axis; init.json
+    /// gives no velocity).
+    #[arg(long, default_value_t = 300.0)]
+    init_velocity_sigma: f64,
+    /// Accelerometer bias uncertainty at the start (m/s^2, 1 sigma).
+    #[arg(long, default_value_t = 0.05)]
+    accel_bias: f64,
+    /// Map offset of the inertial filter: how far the database's errors
+    /// shift the fixes from the same landmarks (m, 1 sigma per axis; 0: not
+    /// modelled) ...
+    #[arg(long, default_value_t = 20.0)]
+    map_sigma: f64,
+    /// ... and how long that shift stays alike (s).
+    #[arg(long, default_value_t = 10.0)]
+    map_tau: f64,
     /// Trust camera.json's focal length instead of estimating it in flight.
     #[arg(long)]
     no_self_calibration: bool,
@@ -331,6 +352,13 @@ struct NavigateArgs {
     /// (percent, 1 sigma) do not update it.
     #[arg(long, default_value_t = 0.5)]
     calibration_frame_sigma: f64,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum FilterArg {
+    Tight,
+    Loose,
+    Fixes,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -612,12 +640,20 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
         "invalid option --gyro-bias: must be deg/h > 0"
     );
     for (name, v) in [
+        ("--init-velocity-sigma", a.init_velocity_sigma),
+        ("--accel-bias", a.accel_bias),
+        ("--map-tau", a.map_tau),
         ("--focal-sigma", a.focal_sigma),
         ("--principal-point-sigma", a.principal_point_sigma),
         ("--calibration-frame-sigma", a.calibration_frame_sigma),
     ] {
         anyhow::ensure!(v.is_finite() && v > 0.0, "invalid option {name} {v}: must be a number > 0");
     }
+    anyhow::ensure!(
+        a.map_sigma.is_finite() && a.map_sigma >= 0.0,
+        "invalid option --map-sigma {}: must be metres >= 0",
+        a.map_sigma
+    );
     anyhow::ensure!(
         a.landmark_height_sigma.is_finite() && a.landmark_height_sigma >= 0.0,
         "invalid option --landmark-height-sigma {}: must be metres >= 0",
@@ -641,6 +677,15 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
     params.max_landmarks = a.max_landmarks;
     params.init_sigma_m = a.init_sigma_m;
     params.init_sigma_deg = a.init_sigma_deg;
+    params.filter = match a.filter {
+        FilterArg::Tight => trn_navigator::FilterMode::Tight,
+        FilterArg::Loose => trn_navigator::FilterMode::Loose,
+        FilterArg::Fixes => trn_navigator::FilterMode::Fixes,
+    };
+    params.init_velocity_sigma_m_s = a.init_velocity_sigma;
+    params.accel_bias_m_s2 = a.accel_bias;
+    params.map_sigma_m = a.map_sigma;
+    params.map_tau_s = a.map_tau;
     params.sun = a.sun;
     params.shading_weight = a.shading_weight;
     params.gyro_arw_deg_sqrt_s = a.gyro_arw / 60.0;

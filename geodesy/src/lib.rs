@@ -5,12 +5,14 @@
 //! (Earth-centred, Earth-fixed, metres) and [`Enu`] (east/north/up metres in the
 //! [`LocalFrame`] tangent to the ellipsoid at an origin). Around them: ellipsoid
 //! normals, ray/ellipsoid intersection (also with the ellipsoid raised by a
-//! height) and geoid undulation grids for orthometric heights.
+//! height), geoid undulation grids for orthometric heights, and the gravity
+//! field an inertial navigator integrates ([`gravity`]).
 
 use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 
 mod geoid;
+pub mod gravity;
 mod ray;
 
 pub use geoid::GeoidGrid;

@@ -17,6 +17,7 @@ pub mod calibration;
 pub mod footprint;
 pub mod http_source;
 pub mod image;
+pub mod ins;
 pub mod nav;
 pub mod picture;
 pub mod predict;
@@ -31,7 +32,7 @@ use ::image::ImageEncoder;
 use trn_flight::{FixStatus, Flight, MatchRecord, NavRecord, PoseCovariance};
 
 pub use http_source::HttpSource;
-pub use nav::{HeightGate, HeightReference, NavParams, Navigator, Rejection};
+pub use nav::{FilterMode, HeightGate, HeightReference, NavParams, Navigator, Rejection};
 pub use source::{DbSource, LandmarkSource, SourceError};
 
 /// Errors of a navigation run; each names the file at fault.
@@ -110,6 +111,8 @@ pub struct RejectedCounts {
     pub few_inliers: usize,
     pub inlier_share: usize,
     pub height: usize,
+    /// Image-only poses the inertial filter's gate refused.
+    pub inconsistent: usize,
 }
 
 /// Reads a flight image as grey levels (RGB by Rec. 601 luma).
@@ -196,6 +199,7 @@ pub fn run_flight(
             Some(Rejection::FewInliers { .. }) => rejected.few_inliers += 1,
             Some(Rejection::InlierShare { .. }) => rejected.inlier_share += 1,
             Some(Rejection::Height { .. }) => rejected.height += 1,
+            Some(Rejection::Inconsistent { .. }) => rejected.inconsistent += 1,
             None => {}
         }
         records.push(r.record);

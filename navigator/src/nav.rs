@@ -9,25 +9,45 @@ use trn_camera::{CameraConfig, CameraModel, CameraPose, Pixel};
 use trn_flight::{FixStatus, ImuSample, MatchRecord, NavRecord, PoseCovariance, TimedPose};
 use trn_landmark::lighting::SunLight;
 use trn_landmark::Template;
-use trn_vision::calib::{frame_calibration, perturb_pose};
+use trn_vision::calib::{frame_calibration, perturb_pose, FrameCalibration};
 use trn_vision::ncc::{self, ImageView, NccParams};
-use trn_vision::pnp::{refine_pose, rotation_vector, AttitudePrior, RefineOptions};
+use trn_vision::pnp::{refine_pose, rotation_vector, AttitudePrior, PosePrior, RefineOptions, Refined};
 use trn_vision::ransac::{ransac_p3p, RansacParams};
 
 use crate::attitude::{AttitudeFilter, GyroErrors};
 use crate::calibration::{CalibrationFilter, CalibrationParams};
 use crate::footprint::{footprint, FootprintParams};
 use crate::image::{GreyImage, Pyramid, UndistortLut};
+use crate::ins::{InsErrors, InsFilter, InsInit, InsState};
 use crate::predict::{predict, Predicted};
 use crate::propagate::propagate_with_bias;
 use crate::source::LandmarkSource;
 use crate::view::DbLevel;
 
+/// How the images' landmark matches are fused with the inertial sensors.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FilterMode {
+    /// The inertial filter ([`crate::ins`]) updated with the matches
+    /// themselves: the refinement of each frame's inliers with the
+    /// filter's predicted pose as its prior.
+    Tight,
+    /// The inertial filter updated with each frame's image-only pose and
+    /// its covariance (loosely coupled).
+    Loose,
+    /// No inertial filter: each frame's PnP pose is the output; the gyro
+    /// carries the attitude between frames ([`crate::attitude`]) and the
+    /// velocity is the slope of the last fixes.
+    Fixes,
+}
+
 /// Navigator settings (the `trn navigate` options).
 #[derive(Clone, Debug)]
 pub struct NavParams {
-    /// Carry the attitude between images with the gyro.
+    /// Carry the attitude between images with the gyro (off: no inertial
+    /// filter either, as [`FilterMode::Fixes`]).
     pub use_gyro: bool,
+    pub filter: FilterMode,
     /// Largest angle between a line of sight and the surface normal (deg).
     pub alpha_max_deg: f64,
     /// Corner walking step of the horizon handling (px).
@@ -62,8 +82,29 @@ pub struct NavParams {
     pub gyro_bias_deg_s: f64,
     pub gyro_arw_deg_sqrt_s: f64,
     pub gyro_bias_walk_deg_s_sqrt_s: f64,
-    /// Velocity uncertainty between fixes (m/s).
+    /// Velocity uncertainty between fixes (m/s) in [`FilterMode::Fixes`].
     pub velocity_sigma_m_s: f64,
+    /// The inertial filter's initial velocity uncertainty (m/s; the initial
+    /// guess has no velocity, its estimate starts at zero).
+    pub init_velocity_sigma_m_s: f64,
+    /// Accelerometer error model (1 sigma per axis): initial bias
+    /// (m/s^2), velocity random walk (m/s/sqrt(s)), bias random walk
+    /// (m/s^2/sqrt(s)).
+    pub accel_bias_m_s2: f64,
+    pub accel_vrw_m_s_sqrt_s: f64,
+    pub accel_bias_walk_m_s2_sqrt_s: f64,
+    /// Velocity random walk (m/s/sqrt(s)) when the flight has no
+    /// accelerometer.
+    pub free_accel_m_s2_sqrt_s: f64,
+    /// The map offset of the inertial filter ([`crate::ins`]): the 1-sigma
+    /// shift (m per axis) the database's errors give the fixes from the
+    /// landmarks in view, and its correlation time (s). 0: not modelled.
+    pub map_sigma_m: f64,
+    pub map_tau_s: f64,
+    /// A frame whose image-only pose is farther than this from the inertial
+    /// filter's prediction (chi-square, 6 degrees of freedom) is rejected as
+    /// inconsistent, and the filter's pose and velocity uncertainty doubled.
+    pub innovation_gate_chi2: f64,
     /// The sun during the flight: picks the database's lighting (its baked
     /// sun nearest to it) when it has several.
     pub sun: Option<SunLight>,
@@ -81,6 +122,7 @@ impl Default for NavParams {
     fn default() -> Self {
         Self {
             use_gyro: true,
+            filter: FilterMode::Tight,
             alpha_max_deg: 75.0,
             horizon_step_px: 10.0,
             min_inliers: 8,
@@ -99,6 +141,19 @@ impl Default for NavParams {
             gyro_arw_deg_sqrt_s: 0.3 / 60.0,
             gyro_bias_walk_deg_s_sqrt_s: 0.01 / 3600.0,
             velocity_sigma_m_s: 20.0,
+            init_velocity_sigma_m_s: 300.0,
+            // Twice the simulated accelerometer (2 mg bias, 0.01 m/s^2 per
+            // sample at 200 Hz = 7e-4 m/s/sqrt(s)).
+            accel_bias_m_s2: 0.05,
+            accel_vrw_m_s_sqrt_s: 0.0015,
+            accel_bias_walk_m_s2_sqrt_s: 1e-4,
+            free_accel_m_s2_sqrt_s: 3.0,
+            // Measured on the realistic flights (README): 20 m over 10 s
+            // leaves no flight's NEES above its 95% band; 10 m leaves two.
+            map_sigma_m: 20.0,
+            map_tau_s: 10.0,
+            // 99.9% of chi-square with 6 degrees of freedom.
+            innovation_gate_chi2: 22.46,
             sun: None,
             shading_weight: 0.5,
             calibration: Some(CalibrationParams::default()),
@@ -127,6 +182,8 @@ pub enum Rejection {
     InlierShare { inliers: usize, matches: usize },
     /// The height disagrees with the prediction by more than the gate allows.
     Height { off_m: f64, allowed_m: f64 },
+    /// The image-only pose disagrees with the inertial filter's prediction.
+    Inconsistent { chi2: f64 },
 }
 
 /// The height check of a fix: where its height should be and how far from it
@@ -215,6 +272,23 @@ pub struct Navigator<'a> {
     velocity_sigma: Option<f64>,
     velocity: Vector3<f64>,
     terrain_h_m: f64,
+    /// The inertial filter at `t` (`None`: [`FilterMode::Fixes`]).
+    ins: Option<InsFilter>,
+}
+
+/// A frame's prediction: the pose guess and how far it may be off.
+struct Prediction {
+    /// Where the images should see the camera.
+    guess: CameraPose,
+    /// The attitude filter's covariance carried to the frame
+    /// ([`FilterMode::Fixes`]; zero otherwise).
+    attitude: Matrix6<f64>,
+    /// Covariance of the guess' attitude (rad^2, ECEF): the frame's prior.
+    att_cov: Matrix3<f64>,
+    /// The guess' position error (m, 1 sigma, 3D).
+    sigma_m: f64,
+    /// The inertial filter carried to the frame.
+    ins: Option<InsFilter>,
 }
 
 const PYRAMID_LEVELS: usize = 4;
@@ -260,6 +334,11 @@ const ACQUISITION_RADIUS_F: f64 = 0.5;
 const HUBER_PX: f64 = 1.0;
 /// Smallest pixel sigma a frame's calibration evidence is weighed with.
 const CALIBRATION_MIN_SIGMA_PX: f64 = 0.1;
+/// Pixel sigma and Huber threshold of a frame's full-resolution
+/// refinement (as the last pyramid level's), and so of the inertial
+/// filter's update.
+const REFINE_SIGMA_PX: f64 = 0.1;
+const REFINE_HUBER_PX: f64 = 1.0;
 
 impl<'a> Navigator<'a> {
     pub fn new(
@@ -276,6 +355,39 @@ impl<'a> Navigator<'a> {
         let near = crate::view::terrain_near(source, &levels, &init.position)?;
         let terrain_h_m = near.height_m;
         let (lighting, lit_for_flight) = choose_lighting(&source.suns()?, params.sun.as_ref());
+        let ins = (params.filter != FilterMode::Fixes && params.use_gyro).then(|| {
+            let q_imu_cam = camera.q_cam_imu().inverse();
+            let state = InsState {
+                t: init.t,
+                position: init.position.to_ecef(),
+                velocity_ecef_m_s: Vector3::zeros(),
+                q_ecef_imu: init.q_ecef_cam * q_imu_cam.inverse(),
+                gyro_bias_imu_rad_s: Vector3::zeros(),
+                accel_bias_imu_m_s2: Vector3::zeros(),
+                map_offset_ecef_m: Vector3::zeros(),
+            };
+            let deg_s = |d: f64| d.to_radians();
+            InsFilter::new(
+                state,
+                &InsInit {
+                    attitude_rad: params.init_sigma_deg.to_radians(),
+                    // `init_sigma_m` is the 3D sigma, as the search's.
+                    position_m: params.init_sigma_m / 3f64.sqrt(),
+                    velocity_m_s: params.init_velocity_sigma_m_s,
+                    gyro_bias_rad_s: deg_s(params.gyro_bias_deg_s),
+                    accel_bias_m_s2: params.accel_bias_m_s2,
+                },
+                InsErrors {
+                    gyro_arw_rad_sqrt_s: deg_s(params.gyro_arw_deg_sqrt_s),
+                    gyro_bias_walk_rad_s_sqrt_s: deg_s(params.gyro_bias_walk_deg_s_sqrt_s),
+                    accel_vrw_m_s_sqrt_s: params.accel_vrw_m_s_sqrt_s,
+                    accel_bias_walk_m_s2_sqrt_s: params.accel_bias_walk_m_s2_sqrt_s,
+                    free_accel_m_s2_sqrt_s: params.free_accel_m_s2_sqrt_s,
+                    map_sigma_m: params.map_sigma_m,
+                    map_tau_s: params.map_tau_s,
+                },
+            )
+        });
         let init_h = HeightReference {
             t: init.t,
             h_m: init.position.h_m,
@@ -311,16 +423,42 @@ impl<'a> Navigator<'a> {
             velocity_sigma: None,
             velocity: Vector3::zeros(),
             terrain_h_m,
+            ins,
         })
     }
 
-    /// The pose guess at `t` (attitude through the gyro less the estimated
-    /// bias, position by the velocity of the last fixes) and the attitude
-    /// filter's covariance there.
-    fn predict(&self, t: f64) -> (CameraPose, Matrix6<f64>) {
+    /// The pose guess at `t` and its uncertainty: the inertial filter
+    /// carried to `t`, or (without it) the attitude through the gyro less
+    /// the estimated bias and the position by the velocity of the last fixes.
+    fn predict(&self, t: f64) -> Prediction {
+        if let Some(ins) = &self.ins {
+            let mut f = ins.clone();
+            f.propagate(t, self.imu);
+            let (guess, cov) = f.apparent_pose(&self.q_imu_cam);
+            // What moves the landmarks in the image: the position error
+            // across the line of sight, and along it only by the scale it
+            // changes (up to the image corner's angle off the boresight).
+            let p = cov.fixed_view::<3, 3>(3, 3).into_owned();
+            let b = guess.q_ecef_cam * Vector3::z();
+            let along2 = b.dot(&(p * b)).max(0.0);
+            let across2 = (p.trace() - along2).max(0.0);
+            let corner = self.camera.pixel_to_normalized(Pixel::new(0.0, 0.0));
+            let tan_corner2 = corner.x * corner.x + corner.y * corner.y;
+            return Prediction {
+                guess,
+                attitude: Matrix6::zeros(),
+                att_cov: cov.fixed_view::<3, 3>(0, 0).into_owned(),
+                sigma_m: (across2 + along2 * tan_corner2).sqrt().max(2.0),
+                ins: Some(f),
+            };
+        }
         let dt = t - self.t;
         let position = trn_geodesy::Ecef(self.pose.position.0 + self.velocity * dt);
-        if self.params.use_gyro {
+        // The last fix's position error, plus the velocity's error over the
+        // gap (unknown before two fixes).
+        let v_sigma = self.velocity_sigma.unwrap_or(self.params.velocity_sigma_m_s);
+        let sigma_m = self.sigma_m + v_sigma * dt.max(0.0);
+        let (guess, attitude) = if self.params.use_gyro {
             let q_ecef_imu = self.pose.q_ecef_cam * self.q_imu_cam.inverse();
             let p = propagate_with_bias(q_ecef_imu, self.t, t, self.imu, &self.filter.bias_imu_rad_s);
             let cov = self.filter.propagated(&p.bias_to_attitude, dt);
@@ -333,7 +471,9 @@ impl<'a> Navigator<'a> {
                 cov[(i, i)] += grow;
             }
             (CameraPose::new(position, self.pose.q_ecef_cam), cov)
-        }
+        };
+        let att_cov = attitude.fixed_view::<3, 3>(0, 0).into_owned();
+        Prediction { guess, attitude, att_cov, sigma_m, ins: None }
     }
 
     /// The camera for a frame at `t`: the calibration's estimate, with the
@@ -355,28 +495,33 @@ impl<'a> Navigator<'a> {
     /// Updates the calibration with an accepted fix's inliers and moves the
     /// fix with it; returns the pose covariance the calibration's remaining
     /// uncertainty adds (zero without self-calibration).
-    fn calibrate(&mut self, t: f64, sol: &mut Solution) -> Matrix6<f64> {
-        let Some(cal) = &mut self.calibration else { return Matrix6::zeros() };
-        let (px, pts): (Vec<Pixel>, Vec<Vector3<f64>>) = sol
-            .records
-            .iter()
-            .filter(|r| r.inlier)
-            .filter_map(|r| Some((Pixel::new(r.u, r.v), r.landmark_ecef?.0)))
-            .unzip();
-        let rms2 = sol.records.iter().filter(|r| r.inlier).map(|r| r.residual_px.powi(2)).sum::<f64>()
-            / px.len().max(1) as f64;
-        let sigma_px = rms2.sqrt().max(CALIBRATION_MIN_SIGMA_PX);
+    /// A frame's evidence on the camera's intrinsics (`None`: no
+    /// self-calibration, or too few inliers).
+    fn calibration_frame(&self, sol: &Solution) -> Option<FrameCalibration> {
+        let cal = self.calibration.as_ref()?;
+        let (px, pts) = inliers_of(sol);
+        let sigma_px = inlier_rms_px(sol).max(CALIBRATION_MIN_SIGMA_PX);
         let height_sigma = cal.params().landmark_height_sigma_m;
-        let Some(frame) =
-            frame_calibration(&self.camera, &px, &pts, &sol.pose, sigma_px, height_sigma, Some(HUBER_PX))
-        else {
-            return Matrix6::zeros();
-        };
+        frame_calibration(&self.camera, &px, &pts, &sol.pose, sigma_px, height_sigma, Some(HUBER_PX))
+    }
+
+    /// What the camera's remaining calibration uncertainty adds to a pose
+    /// from `frame` (zero without self-calibration).
+    fn calibration_consider(&self, frame: Option<&FrameCalibration>) -> Matrix6<f64> {
+        match (&self.calibration, frame) {
+            (Some(cal), Some(frame)) => cal.pose_covariance(frame),
+            _ => Matrix6::zeros(),
+        }
+    }
+
+    fn calibrate(&mut self, t: f64, sol: &mut Solution, frame: Option<FrameCalibration>) -> Matrix6<f64> {
+        let Some(frame) = frame else { return Matrix6::zeros() };
+        let Some(cal) = &mut self.calibration else { return Matrix6::zeros() };
+        let rms = inlier_rms_px(sol);
         let (frame_focal, frame_sigma) = cal.frame_focal(&frame);
         debug!(
-            "t {t:.3}: calibration evidence: focal {frame_focal:+.5} sigma {frame_sigma:.5} ({} inliers, rms {:.2} px)",
-            px.len(),
-            rms2.sqrt()
+            "t {t:.3}: calibration evidence: focal {frame_focal:+.5} sigma {frame_sigma:.5} ({} inliers, rms {rms:.2} px)",
+            sol.inliers,
         );
         match cal.update(t, &frame) {
             Some(step) => {
@@ -392,7 +537,7 @@ impl<'a> Navigator<'a> {
                     p[(1, 1)].sqrt(),
                     p[(2, 2)].sqrt(),
                     step.chi2,
-                    rms2.sqrt()
+                    rms
                 );
                 self.camera = cal.camera();
             }
@@ -404,12 +549,90 @@ impl<'a> Navigator<'a> {
     }
 
     /// The pose to report for a frame without an accepted fix.
-    fn carry(&mut self, t: f64, guess: CameraPose, propagated: Matrix6<f64>) {
+    fn carry(&mut self, t: f64, pred: Prediction) {
         let dt = (t - self.t).max(0.0);
         self.sigma_m += self.params.velocity_sigma_m_s * dt;
-        self.filter.carry(propagated);
-        self.pose = guess;
+        self.filter.carry(pred.attitude);
+        self.pose = pred.guess;
+        if let Some(f) = pred.ins {
+            self.pose = f.pose(&self.q_imu_cam).0;
+            self.ins = Some(f);
+        }
         self.t = t;
+    }
+
+    /// The frame's inliers refined at full resolution from its pose, alone
+    /// or with a pose prior (the inertial filter's prediction).
+    /// Its pixel sigma is the inliers' RMS residual per coordinate: what
+    /// the matches scatter by, not what the correlation resolves.
+    fn refine_inliers(&self, sol: &Solution, pose_prior: Option<PosePrior>) -> Option<Refined> {
+        let (px, pts) = inliers_of(sol);
+        let opts = RefineOptions {
+            pose_prior,
+            huber_px: Some(REFINE_HUBER_PX),
+            pixel_sigma: (inlier_rms_px(sol) / 2f64.sqrt()).max(REFINE_SIGMA_PX),
+            ..RefineOptions::default()
+        };
+        refine_pose(&self.camera, &px, &pts, &sol.pose, &opts)
+    }
+
+    /// Whether the frame's image-only pose agrees with the inertial filter's
+    /// prediction ([`NavParams::innovation_gate_chi2`]).
+    /// `consider`: the calibration's share of the pose's uncertainty.
+    fn consistency(
+        &self,
+        t: f64,
+        f: &InsFilter,
+        sol: &Solution,
+        consider: &Matrix6<f64>,
+    ) -> Option<Rejection> {
+        let r = self.refine_inliers(sol, None)?;
+        let chi2 =
+            f.innovation(&self.q_imu_cam, &r.pose, &(r.covariance + consider)).unwrap_or(f64::INFINITY);
+        debug!("t {t:.3}: innovation chi2 {chi2:.1}");
+        (chi2 > self.params.innovation_gate_chi2).then_some(Rejection::Inconsistent { chi2 })
+    }
+
+    /// Updates the inertial filter with an accepted frame; returns the
+    /// covariance of the pose it then estimates.
+    fn accept_ins(
+        &mut self,
+        t: f64,
+        mut f: InsFilter,
+        sol: &Solution,
+        calibration_cov: Matrix6<f64>,
+    ) -> Matrix6<f64> {
+        let q = self.q_imu_cam;
+        match self.params.filter {
+            // An acquisition's pose is kilometres from the prediction: as an
+            // update, the filter's correlations would turn the jump into
+            // kilometres per second of velocity. It restarts the pose.
+            _ if sol.acquisition => {
+                if let Some(r) = self.refine_inliers(sol, None) {
+                    debug!("t {t:.3}: acquired: the filter's pose restarts from the image's");
+                    f.reset_pose(&q, &r.pose, &r.covariance, 0.0);
+                }
+            }
+            FilterMode::Loose => {
+                if let Some(r) = self.refine_inliers(sol, None) {
+                    f.update_with_pose(&q, &r.pose, &r.covariance);
+                }
+            }
+            _ => {
+                let (pose, covariance) = f.apparent_pose(&q);
+                if let Some(r) = self.refine_inliers(sol, Some(PosePrior { pose, covariance })) {
+                    f.condition_on_pose(&q, &r.pose, &r.covariance);
+                }
+            }
+        }
+        let (pose, cov) = f.pose(&q);
+        let (v, v_cov) = f.velocity();
+        self.velocity = v;
+        self.velocity_sigma = Some((v_cov.trace() / 3.0).max(0.0).sqrt());
+        self.pose = pose;
+        self.t = t;
+        self.ins = Some(f);
+        cov + calibration_cov
     }
 
     /// The camera's self-calibration (`None`: camera.json trusted).
@@ -421,80 +644,62 @@ impl<'a> Navigator<'a> {
     pub fn process(&mut self, t: f64, image: GreyImage) -> FrameResult {
         let start = Instant::now();
         self.update_camera(t);
-        let (guess, propagated) = self.predict(t);
-        let outcome = self.solve(t, &guess, &propagated, image);
-        let ms = start.elapsed().as_secs_f64() * 1e3;
+        let pred = self.predict(t);
+        let outcome = self.solve(t, &pred.guess, &pred.att_cov, pred.sigma_m, image);
         let mut covariance = None;
         let mut rejected = None;
         let (status, inliers, n_matches, matches, guess_px) = match outcome {
-            Ok(sol) => {
-                let rejection = if sol.inliers < self.params.min_inliers {
+            Ok(mut sol) => {
+                let mut rejection = if sol.inliers < self.params.min_inliers {
                     Some(Rejection::FewInliers { inliers: sol.inliers })
                 } else if (sol.inliers as f64) < self.params.min_inlier_share * sol.n_matches as f64 {
                     Some(Rejection::InlierShare { inliers: sol.inliers, matches: sol.n_matches })
-                } else {
+                } else if pred.ins.is_none() || self.last_fix.is_none() {
+                    // With the inertial filter, the height gate checks the
+                    // first fix against the initial guess; after it the
+                    // filter's innovation test (below) judges every fix.
                     self.height_gate(t).check(sol.pose.position.to_geodetic().h_m)
+                } else {
+                    None
                 };
+                let frame = if rejection.is_none() { self.calibration_frame(&sol) } else { None };
+                // An acquisition searched the whole prior: nothing to test
+                // it against (its pose restarts the filter's, below).
+                if let (None, Some(f), false) = (rejection, &pred.ins, sol.acquisition) {
+                    let consider = self.calibration_consider(frame.as_ref());
+                    rejection = self.consistency(t, f, &sol, &consider);
+                }
                 rejected = rejection;
                 let accepted = rejection.is_none();
-                let mut sol = sol;
                 if accepted {
-                    let calibration_cov = self.calibrate(t, &mut sol);
-                    self.recent_fixes.push_back((t, sol.pose.position.0));
-                    while self.recent_fixes.front().is_some_and(|f| t - f.0 > VELOCITY_WINDOW_S) {
-                        self.recent_fixes.pop_front();
-                    }
-                    if let Some((v, sigma)) = velocity_fit(&self.recent_fixes) {
-                        self.velocity = v;
-                        self.velocity_sigma = Some(sigma);
-                    }
+                    let calibration_cov = self.calibrate(t, &mut sol, frame);
                     self.last_fix = Some((t, sol.pose));
-                    self.pose = sol.pose;
-                    self.t = t;
-                    // The covariance of a fix from few matches is pessimistic;
-                    // the next search only needs to cover a plausible miss.
-                    let (att_cov, pos_cov) = (sol.attitude_covariance(), sol.position_covariance());
-                    self.sigma_m = pos_cov.trace().max(0.0).sqrt().clamp(2.0, 200.0);
-                    covariance = Some(PoseCovariance {
-                        t,
-                        position: sol.pose.position.to_geodetic(),
-                        ecef: sol.covariance + calibration_cov,
-                    });
-                    if !self.params.use_gyro || sol.prior_loosened {
-                        self.filter.reset_attitude(&propagated, &att_cov);
-                    } else {
-                        let dtheta = rotation_vector(&(sol.pose.q_ecef_cam * guess.q_ecef_cam.inverse()));
-                        self.filter.update(&propagated, &dtheta, &att_cov);
-                    }
-                    if tracing::enabled!(tracing::Level::DEBUG) {
-                        let r = trn_geodesy::LocalFrame::at(sol.pose.position.to_geodetic()).r_ecef_enu();
-                        let p = r.transpose() * att_cov * r;
-                        let ps = r.transpose() * pos_cov * r;
-                        debug!(
-                            "t {t:.3}: attitude sigma e/n/u {:.4} {:.4} {:.4} deg, position {:.1} {:.1} {:.1} m, gyro bias {:.2} {:.2} {:.2} deg/h",
-                            p[(0, 0)].sqrt().to_degrees(),
-                            p[(1, 1)].sqrt().to_degrees(),
-                            p[(2, 2)].sqrt().to_degrees(),
-                            ps[(0, 0)].sqrt(),
-                            ps[(1, 1)].sqrt(),
-                            ps[(2, 2)].sqrt(),
-                            self.filter.bias_imu_rad_s.x.to_degrees() * 3600.0,
-                            self.filter.bias_imu_rad_s.y.to_degrees() * 3600.0,
-                            self.filter.bias_imu_rad_s.z.to_degrees() * 3600.0,
-                        );
-                    }
+                    let ecef = match pred.ins {
+                        Some(f) => self.accept_ins(t, f, &sol, calibration_cov),
+                        None => self.accept_fix(t, &pred, &sol) + calibration_cov,
+                    };
+                    covariance = Some(PoseCovariance { t, position: self.pose.position.to_geodetic(), ecef });
+                    self.log_fix(t);
                 } else {
                     debug!("t {t:.3}: fix rejected ({} inliers): {rejection:?}", sol.inliers);
-                    self.carry(t, guess, propagated);
+                    let mut pred = pred;
+                    if let (Some(Rejection::Inconsistent { .. }), Some(f)) = (rejection, pred.ins.as_mut()) {
+                        // The image says the filter may be wrong: doubt it,
+                        // so the next frames search wider and a run of such
+                        // frames gets through the gate.
+                        f.inflate(2.0);
+                    }
+                    self.carry(t, pred);
                 }
                 let status = if accepted { FixStatus::Fix } else { FixStatus::Propagated };
                 (status, sol.inliers, sol.n_matches, sol.records, sol.guess_px)
             }
             Err(n) => {
-                self.carry(t, guess, propagated);
+                self.carry(t, pred);
                 (FixStatus::Propagated, 0, n, Vec::new(), Vec::new())
             }
         };
+        let ms = start.elapsed().as_secs_f64() * 1e3;
         let g = self.pose.position.to_geodetic();
         FrameResult {
             record: NavRecord {
@@ -515,6 +720,70 @@ impl<'a> Navigator<'a> {
             covariance,
             rejection: rejected,
         }
+    }
+
+    /// An accepted fix without the inertial filter: the fix is the pose;
+    /// the velocity is fitted to the last fixes, the attitude filter updated.
+    /// Returns the fix's covariance.
+    fn accept_fix(&mut self, t: f64, pred: &Prediction, sol: &Solution) -> Matrix6<f64> {
+        self.recent_fixes.push_back((t, sol.pose.position.0));
+        while self.recent_fixes.front().is_some_and(|f| t - f.0 > VELOCITY_WINDOW_S) {
+            self.recent_fixes.pop_front();
+        }
+        if let Some((v, sigma)) = velocity_fit(&self.recent_fixes) {
+            self.velocity = v;
+            self.velocity_sigma = Some(sigma);
+        }
+        self.pose = sol.pose;
+        self.t = t;
+        // The covariance of a fix from few matches is pessimistic;
+        // the next search only needs to cover a plausible miss.
+        let att_cov = sol.attitude_covariance();
+        self.sigma_m = sol.position_covariance().trace().max(0.0).sqrt().clamp(2.0, 200.0);
+        if !self.params.use_gyro || sol.prior_loosened {
+            self.filter.reset_attitude(&pred.attitude, &att_cov);
+        } else {
+            let dtheta = rotation_vector(&(sol.pose.q_ecef_cam * pred.guess.q_ecef_cam.inverse()));
+            self.filter.update(&pred.attitude, &dtheta, &att_cov);
+        }
+        sol.covariance
+    }
+
+    /// The accepted estimate's uncertainty and the gyro bias, at debug level.
+    fn log_fix(&self, t: f64) {
+        if !tracing::enabled!(tracing::Level::DEBUG) {
+            return;
+        }
+        let (cov, bias) = match &self.ins {
+            Some(f) => (f.pose(&self.q_imu_cam).1, f.state.gyro_bias_imu_rad_s),
+            None => {
+                let mut c = Matrix6::zeros();
+                c.fixed_view_mut::<3, 3>(0, 0).copy_from(&self.filter.covariance.fixed_view::<3, 3>(0, 0));
+                c[(3, 3)] = self.sigma_m.powi(2) / 3.0;
+                c[(4, 4)] = c[(3, 3)];
+                c[(5, 5)] = c[(3, 3)];
+                (c, self.filter.bias_imu_rad_s)
+            }
+        };
+        let r = trn_geodesy::LocalFrame::at(self.pose.position.to_geodetic()).r_ecef_enu();
+        let p = r.transpose() * cov.fixed_view::<3, 3>(0, 0) * r;
+        let ps = r.transpose() * cov.fixed_view::<3, 3>(3, 3) * r;
+        let v = r.transpose() * self.velocity;
+        debug!(
+            "t {t:.3}: attitude sigma e/n/u {:.4} {:.4} {:.4} deg, position {:.1} {:.1} {:.1} m, velocity e/n/u {:.1} {:.1} {:.1} m/s, gyro bias {:.2} {:.2} {:.2} deg/h",
+            p[(0, 0)].sqrt().to_degrees(),
+            p[(1, 1)].sqrt().to_degrees(),
+            p[(2, 2)].sqrt().to_degrees(),
+            ps[(0, 0)].sqrt(),
+            ps[(1, 1)].sqrt(),
+            ps[(2, 2)].sqrt(),
+            v.x,
+            v.y,
+            v.z,
+            bias.x.to_degrees() * 3600.0,
+            bias.y.to_degrees() * 3600.0,
+            bias.z.to_degrees() * 3600.0,
+        );
     }
 
     /// The height gate at `t` ([`HeightGate`]).
@@ -573,10 +842,11 @@ impl<'a> Navigator<'a> {
         &mut self,
         t: f64,
         guess: &CameraPose,
-        propagated: &Matrix6<f64>,
+        att_cov: &Matrix3<f64>,
+        sigma_m: f64,
         image: GreyImage,
     ) -> Result<Solution, usize> {
-        let att_cov: Matrix3<f64> = propagated.fixed_view::<3, 3>(0, 0).into_owned();
+        let att_cov = *att_cov;
         let sigma_rad = att_cov.trace().sqrt();
         let prior = self
             .params
@@ -597,10 +867,6 @@ impl<'a> Navigator<'a> {
             debug!("t {t:.3}: {e}");
             0usize
         })?;
-        // The guess' position: the last fix's, plus the velocity's error over
-        // the gap (unknown before two fixes).
-        let v_sigma = self.velocity_sigma.unwrap_or(self.params.velocity_sigma_m_s);
-        let sigma_m = self.sigma_m + v_sigma * (t - self.t).max(0.0);
         let sigma_px = f * (sigma_rad + sigma_m / fp.center_range_m);
         // A search wider than half the focal length (a guess kilometres
         // off) is an acquisition: it may reach the whole image, and the
@@ -621,9 +887,11 @@ impl<'a> Navigator<'a> {
             fp
         };
         // Coarsest level whose search radius fits, then the finest.
+        // (The undistortion table stops one level earlier than the image
+        // pyramid on small images: a 320x240 camera's 40x30 level has none.)
+        let n_levels = pyr.levels.len().min(self.lut.levels.len());
         let mut k = 0;
-        while k + 1 < pyr.levels.len() && radius_full / (1u32 << k) as f64 > self.params.max_radius_px as f64
-        {
+        while k + 1 < n_levels && radius_full / (1u32 << k) as f64 > self.params.max_radius_px as f64 {
             k += 1;
         }
         // A coarse level needs enough landmarks in view, large enough to correlate.
@@ -669,6 +937,7 @@ impl<'a> Navigator<'a> {
             }
         }
         let mut sol = best.ok_or(0usize)?;
+        sol.acquisition = margin_px > 0.0;
         // The refined terrain height helps the next footprint.
         if let Some(h) = sol.mean_landmark_h {
             self.terrain_h_m = h;
@@ -753,8 +1022,8 @@ impl<'a> Navigator<'a> {
             points.iter().zip(&r.inliers).filter(|x| *x.1).map(|x| *x.0).collect();
         let opts = RefineOptions {
             prior: prior.copied(),
-            huber_px: Some(scale),
-            pixel_sigma: 0.1 * scale,
+            huber_px: Some(REFINE_HUBER_PX * scale),
+            pixel_sigma: REFINE_SIGMA_PX * scale,
             ..RefineOptions::default()
         };
         let mut refined = refine_pose(&self.camera, &in_px, &in_pts, &r.pose, &opts).ok_or(n)?;
@@ -813,6 +1082,7 @@ impl<'a> Navigator<'a> {
             covariance: refined.covariance,
             prior_loosened,
             mean_landmark_h: (inliers > 0).then(|| h_sum / inliers as f64),
+            acquisition: false,
         })
     }
 
@@ -952,6 +1222,9 @@ struct Solution {
     covariance: Matrix6<f64>,
     /// The image disagreed with the gyro prior; it was refined again with the prior loosened.
     prior_loosened: bool,
+    /// The pose came from an acquisition (a search over the whole
+    /// uncertainty of a guess kilometres off).
+    acquisition: bool,
     mean_landmark_h: Option<f64>,
 }
 
@@ -963,6 +1236,25 @@ impl Solution {
     fn position_covariance(&self) -> Matrix3<f64> {
         self.covariance.fixed_view::<3, 3>(3, 3).into_owned()
     }
+}
+
+/// The inliers' pixels and landmarks (ECEF).
+fn inliers_of(sol: &Solution) -> (Vec<Pixel>, Vec<Vector3<f64>>) {
+    sol.records
+        .iter()
+        .filter(|r| r.inlier)
+        .filter_map(|r| Some((Pixel::new(r.u, r.v), r.landmark_ecef?.0)))
+        .unzip()
+}
+
+/// Root mean square of the inliers' reprojection errors (pixels, distance).
+fn inlier_rms_px(sol: &Solution) -> f64 {
+    let (n, sum) = sol
+        .records
+        .iter()
+        .filter(|r| r.inlier)
+        .fold((0, 0.0), |(n, s), r| (n + 1, s + r.residual_px.powi(2)));
+    (sum / n.max(1) as f64).sqrt()
 }
 
 /// The search radius at the next finer pyramid level after a coarse level

@@ -18,15 +18,11 @@
 use nalgebra::{UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 use trn_flight::ImuSample;
-use trn_geodesy::{EARTH_RATE_RAD_S, WGS84_A};
+pub use trn_geodesy::gravity::{gravitation_ecef, GM_M3_S2, J2};
+use trn_geodesy::EARTH_RATE_RAD_S;
 
 use crate::rng::Rng;
 use crate::trajectory::{exp_rotvec, log_rotvec, BodyState, Trajectory};
-
-/// WGS84 gravitational constant GM (m^3/s^2).
-pub const GM_M3_S2: f64 = 3.986_004_418e14;
-/// Second zonal harmonic J2 (WGS84 / EGM96, -sqrt(5) * C20).
-pub const J2: f64 = 1.082_629_821_313_8e-3;
 
 /// IMU model (`"imu"` of a scenario).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -82,19 +78,6 @@ impl ImuParams {
 /// Rotation from ECEF at time `t` to the inertial frame (ECEF at t = 0).
 fn q_i_ecef(t: f64) -> UnitQuaternion<f64> {
     UnitQuaternion::from_axis_angle(&Vector3::z_axis(), EARTH_RATE_RAD_S * t)
-}
-
-/// Gravitation (not gravity: no centrifugal term) of a point mass plus J2, ECEF (m/s^2).
-pub fn gravitation_ecef(r: &Vector3<f64>) -> Vector3<f64> {
-    let r2 = r.norm_squared();
-    let k = 1.5 * J2 * WGS84_A * WGS84_A / r2;
-    let zz = 5.0 * r.z * r.z / r2;
-    let c = -GM_M3_S2 / (r2 * r2.sqrt());
-    Vector3::new(
-        c * r.x * (1.0 + k * (1.0 - zz)),
-        c * r.y * (1.0 + k * (1.0 - zz)),
-        c * r.z * (1.0 + k * (3.0 - zz)),
-    )
 }
 
 /// Noise-free specific force in the IMU frame (m/s^2) of a state.
@@ -310,15 +293,7 @@ mod tests {
         }
     }
 
-    /// WGS84 normal gravity (Somigliana, second-order free-air correction).
-    fn normal_gravity(g: &Geodetic) -> f64 {
-        let s2 = g.lat_rad().sin().powi(2);
-        let gamma = 9.780_325_335_9 * (1.0 + 0.001_931_852_652_41 * s2) / (1.0 - WGS84_E2 * s2).sqrt();
-        let f = trn_geodesy::WGS84_F;
-        let m = 0.003_449_786_506_84;
-        let h = g.h_m;
-        gamma * (1.0 - 2.0 / WGS84_A * (1.0 + f + m - 2.0 * f * s2) * h + 3.0 * h * h / (WGS84_A * WGS84_A))
-    }
+    use trn_geodesy::gravity::normal_gravity_m_s2 as normal_gravity;
 
     #[test]
     fn accelerometer_at_rest_reads_normal_gravity_upward() {

@@ -1,6 +1,7 @@
 //! Levenberg-Marquardt refinement of a camera pose on 2D-3D matches
 //! (reprojection error in pixels through the full distortion model), with an
-//! optional Huber loss and attitude prior, and the pose covariance; plus
+//! optional Huber loss and attitude or full pose prior, and the pose
+//! covariance; plus
 //! [`solve`], RANSAC followed by refinement.
 //!
 //! Parameterisation (also the order of the covariance): a perturbation
@@ -26,6 +27,10 @@ pub struct RefineOptions {
     /// Attitude prior, e.g. a gyro-propagated attitude that pins tilt where a
     /// narrow-FOV nadir view cannot tell tilt from translation.
     pub prior: Option<AttitudePrior>,
+    /// Prior on the whole pose, e.g. an inertial filter's prediction: the
+    /// refinement is then the filter's (iterated) measurement update on the
+    /// matches themselves. Exclusive with `prior`.
+    pub pose_prior: Option<PosePrior>,
     /// Standard deviation of a pixel coordinate (px): pixel residuals are
     /// divided by it, so it weighs them against the prior and scales the
     /// covariance.
@@ -34,7 +39,7 @@ pub struct RefineOptions {
 
 impl Default for RefineOptions {
     fn default() -> Self {
-        Self { max_iterations: 50, huber_px: None, prior: None, pixel_sigma: 1.0 }
+        Self { max_iterations: 50, huber_px: None, prior: None, pose_prior: None, pixel_sigma: 1.0 }
     }
 }
 
@@ -76,6 +81,35 @@ impl AttitudePrior {
     pub fn mahalanobis2(&self, q_ecef_cam: &UnitQuaternion<f64>) -> Option<f64> {
         let w = self.sqrt_information()?;
         Some((w * rotation_vector(&(q_ecef_cam * self.q_ecef_cam.inverse()))).norm_squared())
+    }
+}
+
+/// A prior on the whole pose: adds the residual `W [log(q * q_prior^-1);
+/// c - c_prior]` with `W^T W = covariance^-1` (the module's perturbation
+/// order), so the refinement minimises the prior's and the matches' costs
+/// together: the maximum a posteriori pose, and its covariance the
+/// posterior's.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PosePrior {
+    pub pose: CameraPose,
+    /// Covariance of `[dtheta (rad, ECEF); dp (m, ECEF)]`.
+    pub covariance: Matrix6<f64>,
+}
+
+impl PosePrior {
+    /// `W` with `W^T W = covariance^-1`; `None` unless the covariance is
+    /// finite, symmetric and positive definite.
+    pub fn sqrt_information(&self) -> Option<Matrix6<f64>> {
+        let p = self.covariance;
+        let scale = p.abs().max();
+        if !p.iter().all(|x| x.is_finite())
+            || !(scale > 0.0)
+            || (p - p.transpose()).abs().max() > 1e-9 * scale
+        {
+            return None;
+        }
+        let l = p.cholesky()?.l();
+        l.solve_lower_triangular(&Matrix6::identity())
     }
 }
 
@@ -130,12 +164,18 @@ pub fn refine_pose(
     if opts.huber_px.is_some_and(|k| !(k > 0.0)) {
         return None;
     }
-    let prior = match &opts.prior {
-        Some(p) => Some((p.q_ecef_cam, p.sqrt_information()?)),
-        None => None,
-    };
     // Work relative to the initial position (precision at ECEF magnitudes).
     let origin = initial.position;
+    let prior = match (&opts.prior, &opts.pose_prior) {
+        (Some(_), Some(_)) => return None,
+        (Some(p), None) => Some(PriorTerm::Attitude(p.q_ecef_cam, p.sqrt_information()?)),
+        (None, Some(p)) => Some(PriorTerm::Pose {
+            q: p.pose.q_ecef_cam,
+            c: p.pose.position.0 - origin.0,
+            w: Box::new(p.sqrt_information()?),
+        }),
+        (None, None) => None,
+    };
     let problem = Problem {
         camera,
         pixels,
@@ -316,8 +356,18 @@ struct Problem<'a> {
     local: Vec<Vector3<f64>>,
     huber_px: Option<f64>,
     inv_sigma2: f64,
-    /// Prior attitude and its square-root information `W`.
-    prior: Option<(UnitQuaternion<f64>, Matrix3<f64>)>,
+    prior: Option<PriorTerm>,
+}
+
+/// A prior's mean and square-root information `W`.
+enum PriorTerm {
+    Attitude(UnitQuaternion<f64>, Matrix3<f64>),
+    /// The position `c` relative to the problem's origin.
+    Pose {
+        q: UnitQuaternion<f64>,
+        c: Vector3<f64>,
+        w: Box<Matrix6<f64>>,
+    },
 }
 
 impl Problem<'_> {
@@ -337,15 +387,31 @@ impl Problem<'_> {
             h += j.transpose() * j * ws;
             g += j.transpose() * r * ws;
         }
-        if let Some((q_prior, w)) = self.prior {
-            let phi = rotation_vector(&(state.q * q_prior.inverse()));
-            let r = w * phi;
-            let jp = w * inverse_left_jacobian(&phi);
-            cost += r.norm_squared();
-            let mut hp = h.fixed_view_mut::<3, 3>(0, 0);
-            hp += jp.transpose() * jp;
-            let mut gp = g.fixed_rows_mut::<3>(0);
-            gp += jp.transpose() * r;
+        match &self.prior {
+            Some(PriorTerm::Attitude(q_prior, w)) => {
+                let phi = rotation_vector(&(state.q * q_prior.inverse()));
+                let r = w * phi;
+                let jp = w * inverse_left_jacobian(&phi);
+                cost += r.norm_squared();
+                let mut hp = h.fixed_view_mut::<3, 3>(0, 0);
+                hp += jp.transpose() * jp;
+                let mut gp = g.fixed_rows_mut::<3>(0);
+                gp += jp.transpose() * r;
+            }
+            Some(PriorTerm::Pose { q, c, w }) => {
+                let phi = rotation_vector(&(state.q * q.inverse()));
+                let mut e = Vector6::zeros();
+                e.fixed_rows_mut::<3>(0).copy_from(&phi);
+                e.fixed_rows_mut::<3>(3).copy_from(&(state.c - c));
+                let mut j = Matrix6::identity();
+                j.fixed_view_mut::<3, 3>(0, 0).copy_from(&inverse_left_jacobian(&phi));
+                let r = w.as_ref() * e;
+                let jp = w.as_ref() * j;
+                cost += r.norm_squared();
+                h += jp.transpose() * jp;
+                g += jp.transpose() * r;
+            }
+            None => {}
         }
         Some(Linearization { cost, h, g })
     }
@@ -517,26 +583,94 @@ mod tests {
         let scene = nadir_scene(&mut rng, &camera, 3000.0, 10, 300.0, 10.0);
         let origin = scene.pose.position;
         let q_prior = UnitQuaternion::from_scaled_axis(Vector3::new(0.1, -0.2, 0.05)) * scene.pose.q_ecef_cam;
-        let problem = Problem {
-            camera: &camera,
-            pixels: &scene.pixels,
-            local: scene.points.iter().map(|p| p - origin.0).collect(),
-            huber_px: None,
-            inv_sigma2: 1.0,
-            prior: Some((q_prior, AttitudePrior::isotropic(q_prior, 0.01).sqrt_information().unwrap())),
+        let pose_prior = PosePrior {
+            pose: CameraPose {
+                position: Ecef(scene.pose.position.0 + Vector3::new(40.0, -25.0, 10.0)),
+                q_ecef_cam: q_prior,
+            },
+            covariance: Matrix6::from_fn(|i, j| {
+                let d = if i < 3 { 1e-4 } else { 400.0 };
+                if i == j {
+                    d
+                } else if i / 3 == j / 3 {
+                    0.3 * d
+                } else {
+                    0.0
+                }
+            }),
         };
-        let start = perturbed(&mut rng, &scene.pose, 30.0, 0.5);
-        let state = State { q: start.q_ecef_cam, c: start.position.0 - origin.0 };
-        let lin = problem.linearize(&state).unwrap();
-        // The gradient of half the cost by central differences.
-        for i in 0..6 {
-            let h = if i < 3 { 1e-7 } else { 1e-4 };
-            let mut d = Vector6::zeros();
-            d[i] = h;
-            let plus = problem.linearize(&state.apply(&d)).unwrap().cost;
-            let minus = problem.linearize(&state.apply(&-d)).unwrap().cost;
-            let numeric = 0.25 * (plus - minus) / h;
-            assert!((numeric - lin.g[i]).abs() < 1e-5 * lin.g.abs().max(), "{i}: {numeric} {}", lin.g[i]);
+        for prior in [
+            PriorTerm::Attitude(q_prior, AttitudePrior::isotropic(q_prior, 0.01).sqrt_information().unwrap()),
+            PriorTerm::Pose {
+                q: q_prior,
+                c: pose_prior.pose.position.0 - origin.0,
+                w: Box::new(pose_prior.sqrt_information().unwrap()),
+            },
+        ] {
+            let problem = Problem {
+                camera: &camera,
+                pixels: &scene.pixels,
+                local: scene.points.iter().map(|p| p - origin.0).collect(),
+                huber_px: None,
+                inv_sigma2: 1.0,
+                prior: Some(prior),
+            };
+            let start = perturbed(&mut rng, &scene.pose, 30.0, 0.5);
+            let state = State { q: start.q_ecef_cam, c: start.position.0 - origin.0 };
+            let lin = problem.linearize(&state).unwrap();
+            // The gradient of half the cost by central differences.
+            for i in 0..6 {
+                let h = if i < 3 { 1e-7 } else { 1e-4 };
+                let mut d = Vector6::zeros();
+                d[i] = h;
+                let plus = problem.linearize(&state.apply(&d)).unwrap().cost;
+                let minus = problem.linearize(&state.apply(&-d)).unwrap().cost;
+                let numeric = 0.25 * (plus - minus) / h;
+                assert!((numeric - lin.g[i]).abs() < 1e-5 * lin.g.abs().max(), "{i}: {numeric} {}", lin.g[i]);
+            }
+        }
+    }
+
+    #[test]
+    fn a_pose_prior_gives_the_kalman_update() {
+        // Linear-Gaussian check: the refinement with a pose prior is the
+        // information-weighted combination of the prior and the image-only
+        // solution, with covariance (P^-1 + C^-1)^-1; and an attitude
+        // prior and a pose prior cannot both be given.
+        let camera = CameraModel::from_fov(640, 480, 40.0);
+        let mut rng = Rng::new(21);
+        for _ in 0..5 {
+            let mut scene = nadir_scene(&mut rng, &camera, 10_000.0, 30, 500.0, 5.0);
+            add_noise(&mut rng, &mut scene.pixels, 0.5);
+            let opts = RefineOptions { pixel_sigma: 0.5, ..RefineOptions::default() };
+            let start = perturbed(&mut rng, &scene.pose, 50.0, 0.3);
+            let image = refine_pose(&camera, &scene.pixels, &scene.points, &start, &opts).unwrap();
+            // A prior 20 m / 0.05 deg off the truth, correlated between axes.
+            let a = Matrix6::from_fn(|_, _| rng.gaussian());
+            let scale = Matrix6::from_diagonal(&Vector6::new(1e-3, 1e-3, 1e-3, 30.0, 30.0, 30.0));
+            let p = scale * (a * a.transpose() + Matrix6::identity()) * scale / 6.0;
+            let prior_pose = perturbed(&mut rng, &scene.pose, 20.0, 0.05);
+            let prior = PosePrior { pose: prior_pose, covariance: p };
+            let both = RefineOptions { pose_prior: Some(prior), ..opts };
+            let fused = refine_pose(&camera, &scene.pixels, &scene.points, &start, &both).unwrap();
+            // Everything in the tangent space at the truth.
+            let (zi, zp, zf) = (
+                error(&image.pose, &scene.pose),
+                error(&prior_pose, &scene.pose),
+                error(&fused.pose, &scene.pose),
+            );
+            let (pi, ci) = (p.try_inverse().unwrap(), image.covariance.try_inverse().unwrap());
+            let want_cov = (pi + ci).try_inverse().unwrap();
+            let want = want_cov * (pi * zp + ci * zi);
+            let d = fused.covariance.try_inverse().unwrap();
+            let miss = ((zf - want).transpose() * d * (zf - want))[(0, 0)];
+            assert!(miss < 1e-2, "posterior mean {miss} (Mahalanobis^2) from the Kalman update");
+            let rel = (fused.covariance - want_cov).norm() / want_cov.norm();
+            // The Jacobians are taken at different poses (10 km range, metres apart).
+            assert!(rel < 1e-2, "posterior covariance off by {rel}");
+            let bad =
+                RefineOptions { prior: Some(AttitudePrior::isotropic(prior_pose.q_ecef_cam, 1e-3)), ..both };
+            assert!(refine_pose(&camera, &scene.pixels, &scene.points, &start, &bad).is_none());
         }
     }
 

@@ -1,0 +1,742 @@
+//! The inertial filter: an error-state extended Kalman filter that carries
+//! position, velocity and attitude with the gyro and the accelerometer
+//! between images, and learns both sensors' biases from the landmark fixes.
+//! Pure math, no I/O.
+//!
+//! **Mechanization** in ECEF (Groves, *Principles of GNSS, Inertial, and
+//! Multisensor Integrated Navigation Systems*, 2nd ed., section 5.3): per IMU
+//! interval `dt`, with the gyro's mean rate `w` and the specific force `f`
+//! (each less its estimated bias),
+//! `q_ecef_imu <- Rz(-we dt) q_ecef_imu exp(w dt)`,
+//! `v <- v + (R f + g(r) - 2 we x v) dt`, `r <- r + (v_old + v) dt / 2`, with
+//! `g` gravity ([`trn_geodesy::gravity`]: J2 gravitation plus the
+//! centrifugal term). Without accelerometer samples the velocity is carried
+//! as a random walk of [`InsErrors::free_accel_m_s2_sqrt_s`].
+//!
+//! **Error state** (the order of [`InsFilter::covariance`]), truth = estimate
+//! plus error: `[dtheta (rad, ECEF: q = exp(dtheta) q_est); dr (m); dv (m/s);
+//! dbg (rad/s, gyro bias, IMU frame); dba (m/s^2, accelerometer bias, IMU
+//! frame); dm (m, map offset)]`. Its dynamics (Groves eq. 14.48-14.50):
+//! `dtheta' = -[we]x dtheta - R dbg`, `dr' = dv`,
+//! `dv' = -[R f]x dtheta + Gamma dr - 2 [we]x dv - R dba`, the biases random
+//! walks, and the map offset a first-order Gauss-Markov process.
+//!
+//! **Map offset.** The landmarks are not the world: a database whose heights
+//! or orthoimage are off by tens of metres shifts every fix from the same
+//! landmarks alike, and consecutive frames see the same landmarks. The
+//! filter models that shift as a position offset `m` of what the images see
+//! (`apparent = r + m`), correlated over [`InsErrors::map_tau_s`], so a
+//! hundred fixes from the same landmarks do not count as a hundred
+//! independent ones (`map_sigma_m = 0`: not modelled).
+//!
+//! **Update** ([`InsFilter::condition_on_pose`]): the image measures the
+//! apparent camera pose `[dtheta; dr + dm]`. A refinement of the matches with
+//! the filter's predicted pose as its prior (`trn_vision::pnp::PosePrior`)
+//! is the iterated Kalman update of that block; the rest of the state follows
+//! by Gaussian conditioning, as in [`crate::attitude`]. [`InsFilter::innovation`]
+//! tests an image-only pose against the prediction (chi-square, 6 degrees of
+//! freedom) before the update.
+
+use nalgebra::{Matrix3, Matrix6, SMatrix, UnitQuaternion, Vector3, Vector6};
+use trn_camera::CameraPose;
+use trn_flight::ImuSample;
+use trn_geodesy::gravity::{gravitation_gradient, gravity_ecef};
+use trn_geodesy::{Ecef, EARTH_RATE_RAD_S};
+use trn_vision::pnp::rotation_vector;
+
+use crate::propagate::strapdown_increment;
+
+/// Dimension of the error state.
+pub const N: usize = 18;
+/// Offsets of the error state's blocks.
+pub const ATT: usize = 0;
+pub const POS: usize = 3;
+pub const VEL: usize = 6;
+pub const GYRO_BIAS: usize = 9;
+pub const ACCEL_BIAS: usize = 12;
+pub const MAP: usize = 15;
+
+pub type Covariance = SMatrix<f64, N, N>;
+
+/// Sensor and map error model (1 sigma per axis).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct InsErrors {
+    /// Gyro angle random walk (rad/sqrt(s)).
+    pub gyro_arw_rad_sqrt_s: f64,
+    /// Gyro bias random walk (rad/s/sqrt(s)).
+    pub gyro_bias_walk_rad_s_sqrt_s: f64,
+    /// Accelerometer velocity random walk (m/s/sqrt(s)).
+    pub accel_vrw_m_s_sqrt_s: f64,
+    /// Accelerometer bias random walk (m/s^2/sqrt(s)).
+    pub accel_bias_walk_m_s2_sqrt_s: f64,
+    /// Velocity random walk (m/s/sqrt(s)) where no accelerometer sample
+    /// covers the interval: the vehicle's own accelerations, unmeasured.
+    pub free_accel_m_s2_sqrt_s: f64,
+    /// Map offset: its 1-sigma size (m per axis; 0: not modelled) and
+    /// correlation time (s).
+    pub map_sigma_m: f64,
+    pub map_tau_s: f64,
+}
+
+/// Initial uncertainty (1 sigma per axis).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct InsInit {
+    pub attitude_rad: f64,
+    pub position_m: f64,
+    pub velocity_m_s: f64,
+    pub gyro_bias_rad_s: f64,
+    pub accel_bias_m_s2: f64,
+}
+
+/// The estimated state (the nominal state of the error-state filter).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct InsState {
+    pub t: f64,
+    pub position: Ecef,
+    pub velocity_ecef_m_s: Vector3<f64>,
+    pub q_ecef_imu: UnitQuaternion<f64>,
+    pub gyro_bias_imu_rad_s: Vector3<f64>,
+    pub accel_bias_imu_m_s2: Vector3<f64>,
+    /// Apparent minus true position of what the images see (m, ECEF).
+    pub map_offset_ecef_m: Vector3<f64>,
+}
+
+/// State, covariance and error model.
+#[derive(Clone, Debug, PartialEq)]
+pub struct InsFilter {
+    pub state: InsState,
+    pub covariance: Covariance,
+    pub errors: InsErrors,
+}
+
+fn block(p: &mut Covariance, at: usize, sigma: f64) {
+    for i in at..at + 3 {
+        p[(i, i)] = sigma * sigma;
+    }
+}
+
+/// The covariance is propagated in steps of about this (s): the IMU's own
+/// rate (200 Hz and more) would cost an 18x18 product per sample.
+pub const COVARIANCE_STEP_S: f64 = 0.05;
+
+/// Error-state dynamics accumulated over IMU samples until the next
+/// covariance step.
+struct Accumulated {
+    /// Integral of the time-varying part of F.
+    f_dt: Covariance,
+    /// Process noise variances.
+    q: SMatrix<f64, N, 1>,
+    dt: f64,
+    map_decay: f64,
+}
+
+impl Default for Accumulated {
+    fn default() -> Self {
+        Self { f_dt: Covariance::zeros(), q: SMatrix::zeros(), dt: 0.0, map_decay: 1.0 }
+    }
+}
+
+/// Where the velocity comes from over one step.
+enum Force {
+    /// Specific force (m/s^2, IMU frame), bias not yet removed.
+    Measured(Vector3<f64>),
+    /// No accelerometer: constant velocity.
+    Free,
+}
+
+impl InsFilter {
+    pub fn new(state: InsState, init: &InsInit, errors: InsErrors) -> Self {
+        let mut p = Covariance::zeros();
+        block(&mut p, ATT, init.attitude_rad);
+        block(&mut p, POS, init.position_m);
+        block(&mut p, VEL, init.velocity_m_s);
+        block(&mut p, GYRO_BIAS, init.gyro_bias_rad_s);
+        block(&mut p, ACCEL_BIAS, init.accel_bias_m_s2);
+        block(&mut p, MAP, errors.map_sigma_m);
+        Self { state, covariance: p, errors }
+    }
+
+    /// Carries the state and covariance to `t1` through the IMU samples
+    /// (each gyro sample the mean rate over the interval ending at its time,
+    /// each accelerometer sample the specific force at its time, linearly
+    /// interpolated in between). Time no sample covers keeps the attitude
+    /// fixed in inertial space and the velocity as it was. `t1` before the
+    /// state's time does nothing.
+    pub fn propagate(&mut self, t1: f64, imu: &[ImuSample]) {
+        let t0 = self.state.t;
+        if !(t1 > t0) {
+            return;
+        }
+        let mut acc = Accumulated::default();
+        let start = imu.partition_point(|s| s.t <= t0);
+        let mut covered = t0;
+        for k in start..imu.len() {
+            let end = imu[k].t;
+            let begin = if k > 0 { imu[k - 1].t } else { imu.get(1).map_or(end, |n| end - (n.t - end)) };
+            let (a, b) = (begin.max(t0), end.min(t1));
+            if b > a {
+                if a > covered {
+                    self.step(a - covered, None, Force::Free, &mut acc);
+                }
+                let force = match (k.checked_sub(1).and_then(|j| imu[j].f_imu_m_s2), imu[k].f_imu_m_s2) {
+                    (Some(f0), Some(f1)) if end > begin => {
+                        let mid = 0.5 * (a + b);
+                        let s = ((mid - begin) / (end - begin)).clamp(0.0, 1.0);
+                        Force::Measured(f0 + (f1 - f0) * s)
+                    }
+                    (_, Some(f1)) => Force::Measured(f1),
+                    _ => Force::Free,
+                };
+                self.step(b - a, Some(&imu[k].w_imu_rad_s), force, &mut acc);
+                covered = b;
+            }
+            if end >= t1 {
+                break;
+            }
+        }
+        if t1 > covered {
+            self.step(t1 - covered, None, Force::Free, &mut acc);
+        }
+        self.flush(&mut acc);
+        self.state.t = t1;
+    }
+
+    /// One mechanization step of `dt` seconds with the gyro's mean rate
+    /// `gyro` (bias not yet removed; `None` where no sample covers the step:
+    /// the attitude then stays fixed in inertial space). The error state's
+    /// dynamics are accumulated in `acc` and applied to the covariance every
+    /// [`COVARIANCE_STEP_S`].
+    fn step(&mut self, dt: f64, gyro: Option<&Vector3<f64>>, force: Force, acc: &mut Accumulated) {
+        let decay = self.map_decay(dt);
+        let s = &mut self.state;
+        let we = Vector3::new(0.0, 0.0, EARTH_RATE_RAD_S);
+        let w = gyro.map_or(Vector3::zeros(), |w| w - s.gyro_bias_imu_rad_s);
+        let dq = strapdown_increment(&w, dt);
+        // Mid-step attitude for the specific force (second order).
+        let r_mid = (s.q_ecef_imu * UnitQuaternion::from_scaled_axis(w * (0.5 * dt))).to_rotation_matrix();
+        let r_mid = r_mid.into_inner();
+        let measured = match force {
+            Force::Measured(f) => Some(r_mid * (f - s.accel_bias_imu_m_s2)),
+            Force::Free => None,
+        };
+        let v0 = s.velocity_ecef_m_s;
+        if let Some(f_ecef) = measured {
+            let a = f_ecef + gravity_ecef(&s.position) - 2.0 * we.cross(&v0);
+            s.velocity_ecef_m_s += a * dt;
+        }
+        s.position.0 += (v0 + s.velocity_ecef_m_s) * (0.5 * dt);
+        let earth = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), -EARTH_RATE_RAD_S * dt);
+        s.q_ecef_imu = earth * s.q_ecef_imu * dq;
+        s.map_offset_ecef_m *= decay;
+
+        // The error state's F dt (the constant blocks are added at the flush).
+        if gyro.is_some() {
+            let mut b = acc.f_dt.fixed_view_mut::<3, 3>(ATT, GYRO_BIAS);
+            b -= r_mid * dt;
+        }
+        if let Some(f_ecef) = measured {
+            let mut b = acc.f_dt.fixed_view_mut::<3, 3>(VEL, ATT);
+            b -= f_ecef.cross_matrix() * dt;
+            let mut b = acc.f_dt.fixed_view_mut::<3, 3>(VEL, POS);
+            b += gravitation_gradient(&s.position) * dt;
+            let mut b = acc.f_dt.fixed_view_mut::<3, 3>(VEL, ACCEL_BIAS);
+            b -= r_mid * dt;
+        }
+        let e = &self.errors;
+        let vel_noise = if measured.is_some() { e.accel_vrw_m_s_sqrt_s } else { e.free_accel_m_s2_sqrt_s };
+        let map_var = e.map_sigma_m.powi(2) * (1.0 - decay * decay);
+        for i in 0..3 {
+            acc.q[ATT + i] += e.gyro_arw_rad_sqrt_s.powi(2) * dt;
+            acc.q[VEL + i] += vel_noise.powi(2) * dt;
+            acc.q[GYRO_BIAS + i] += e.gyro_bias_walk_rad_s_sqrt_s.powi(2) * dt;
+            acc.q[ACCEL_BIAS + i] += e.accel_bias_walk_m_s2_sqrt_s.powi(2) * dt;
+            acc.q[MAP + i] += map_var;
+        }
+        acc.dt += dt;
+        acc.map_decay *= decay;
+        if acc.dt >= COVARIANCE_STEP_S {
+            self.flush(acc);
+        }
+    }
+
+    /// Applies the accumulated transition `Phi = I + A + A^2 / 2` (`A` the
+    /// integral of F) and process noise to the covariance.
+    fn flush(&mut self, acc: &mut Accumulated) {
+        if acc.dt <= 0.0 {
+            return;
+        }
+        let wx = Vector3::new(0.0, 0.0, EARTH_RATE_RAD_S).cross_matrix() * acc.dt;
+        let mut a = acc.f_dt;
+        {
+            let mut b = a.fixed_view_mut::<3, 3>(ATT, ATT);
+            b -= wx;
+        }
+        a.fixed_view_mut::<3, 3>(POS, VEL).fill_diagonal(acc.dt);
+        {
+            let mut b = a.fixed_view_mut::<3, 3>(VEL, VEL);
+            b -= wx * 2.0;
+        }
+        let mut phi = Covariance::identity() + a + a * a * 0.5;
+        for i in MAP..MAP + 3 {
+            for j in 0..N {
+                phi[(i, j)] = 0.0;
+            }
+            phi[(i, i)] = acc.map_decay;
+        }
+        let p = &mut self.covariance;
+        *p = phi * *p * phi.transpose();
+        for i in 0..N {
+            p[(i, i)] += acc.q[i];
+        }
+        *acc = Accumulated::default();
+    }
+
+    fn map_decay(&self, dt: f64) -> f64 {
+        if self.errors.map_tau_s > 0.0 {
+            (-dt / self.errors.map_tau_s).exp()
+        } else {
+            0.0
+        }
+    }
+
+    /// `H` of the apparent camera pose `[dtheta; dr + dm]`.
+    fn pose_rows() -> SMatrix<f64, 6, N> {
+        let mut h = SMatrix::<f64, 6, N>::zeros();
+        h.fixed_view_mut::<3, 3>(0, ATT).copy_from(&Matrix3::identity());
+        h.fixed_view_mut::<3, 3>(3, POS).copy_from(&Matrix3::identity());
+        h.fixed_view_mut::<3, 3>(3, MAP).copy_from(&Matrix3::identity());
+        h
+    }
+
+    /// The camera pose the images should see (the map offset added) and its
+    /// covariance (`[dtheta; dp]`, as `trn_vision::pnp`'s).
+    pub fn apparent_pose(&self, q_imu_cam: &UnitQuaternion<f64>) -> (CameraPose, Matrix6<f64>) {
+        let h = Self::pose_rows();
+        let s = &self.state;
+        let pose = CameraPose::new(Ecef(s.position.0 + s.map_offset_ecef_m), s.q_ecef_imu * q_imu_cam);
+        (pose, h * self.covariance * h.transpose())
+    }
+
+    /// The estimated camera pose (the map offset not added) and its covariance.
+    pub fn pose(&self, q_imu_cam: &UnitQuaternion<f64>) -> (CameraPose, Matrix6<f64>) {
+        let s = &self.state;
+        let pose = CameraPose::new(s.position, s.q_ecef_imu * q_imu_cam);
+        (pose, self.covariance.fixed_view::<6, 6>(ATT, ATT).into_owned())
+    }
+
+    /// Velocity (m/s, ECEF) and its covariance.
+    pub fn velocity(&self) -> (Vector3<f64>, Matrix3<f64>) {
+        (self.state.velocity_ecef_m_s, self.covariance.fixed_view::<3, 3>(VEL, VEL).into_owned())
+    }
+
+    /// Normalized innovation squared (6 degrees of freedom) of an apparent
+    /// camera pose measured with covariance `r` independently of the
+    /// filter; `None` when the innovation covariance is singular.
+    pub fn innovation(
+        &self,
+        q_imu_cam: &UnitQuaternion<f64>,
+        measured: &CameraPose,
+        r: &Matrix6<f64>,
+    ) -> Option<f64> {
+        let (pred, m) = self.apparent_pose(q_imu_cam);
+        let y = pose_difference(measured, &pred);
+        let s = (m + r).cholesky()?;
+        Some(y.dot(&s.solve(&y)))
+    }
+
+    /// Conditions the filter on a posterior of the apparent camera pose
+    /// (mean and covariance) that was computed with [`Self::apparent_pose`]
+    /// as its prior: the posterior becomes the pose block, and the other
+    /// states move with it by their correlation with that block
+    /// (`K = P H^T (H P H^T)^-1`, `x += K dm`,
+    /// `P -= K (H P H^T - posterior) K^T`). Returns false, changing
+    /// nothing, when the prior pose covariance cannot be inverted.
+    pub fn condition_on_pose(
+        &mut self,
+        q_imu_cam: &UnitQuaternion<f64>,
+        posterior: &CameraPose,
+        posterior_cov: &Matrix6<f64>,
+    ) -> bool {
+        let h = Self::pose_rows();
+        let (pred, m) = self.apparent_pose(q_imu_cam);
+        let Some(m_inv) = m.cholesky().map(|c| c.inverse()) else { return false };
+        let k = self.covariance * h.transpose() * m_inv;
+        let dx = k * pose_difference(posterior, &pred);
+        let p = self.covariance - k * (m - posterior_cov) * k.transpose();
+        self.covariance = (p + p.transpose()) * 0.5;
+        self.apply(&dx);
+        true
+    }
+
+    /// A standard (loosely coupled) Kalman update with an apparent camera
+    /// pose measured with covariance `r`; returns its normalized innovation
+    /// squared, or `None` (nothing changed) when singular.
+    pub fn update_with_pose(
+        &mut self,
+        q_imu_cam: &UnitQuaternion<f64>,
+        measured: &CameraPose,
+        r: &Matrix6<f64>,
+    ) -> Option<f64> {
+        let (pred, m) = self.apparent_pose(q_imu_cam);
+        let y = pose_difference(measured, &pred);
+        let s_inv = (m + r).cholesky()?.inverse();
+        // Posterior of the pose block, then conditioning.
+        let post_cov = m - m * s_inv * m;
+        let post_cov = (post_cov + post_cov.transpose()) * 0.5;
+        let dm = m * s_inv * y;
+        let posterior = perturb(&pred, &dm);
+        self.condition_on_pose(q_imu_cam, &posterior, &post_cov);
+        Some(y.dot(&(s_inv * y)))
+    }
+
+    /// Adds an error-state correction to the nominal state.
+    fn apply(&mut self, dx: &SMatrix<f64, N, 1>) {
+        let s = &mut self.state;
+        let v = |at: usize| Vector3::new(dx[at], dx[at + 1], dx[at + 2]);
+        s.q_ecef_imu = UnitQuaternion::from_scaled_axis(v(ATT)) * s.q_ecef_imu;
+        s.position.0 += v(POS);
+        s.velocity_ecef_m_s += v(VEL);
+        s.gyro_bias_imu_rad_s += v(GYRO_BIAS);
+        s.accel_bias_imu_m_s2 += v(ACCEL_BIAS);
+        s.map_offset_ecef_m += v(MAP);
+    }
+
+    /// Scales the uncertainty of position, velocity and attitude by `factor`
+    /// (their standard deviations), keeping every correlation: what the
+    /// filter does when an image it could not explain says it may be wrong.
+    pub fn inflate(&mut self, factor: f64) {
+        let mut d = SMatrix::<f64, N, 1>::repeat(1.0);
+        for i in ATT..VEL + 3 {
+            d[i] = factor;
+        }
+        let scale = Covariance::from_diagonal(&d);
+        self.covariance = scale * self.covariance * scale;
+    }
+
+    /// Restarts the pose from an image-only fix (mean and covariance): the
+    /// pose block becomes the fix's, its correlations with the rest are
+    /// dropped, and the velocity's uncertainty is at least `velocity_sigma_m_s`.
+    pub fn reset_pose(
+        &mut self,
+        q_imu_cam: &UnitQuaternion<f64>,
+        fix: &CameraPose,
+        fix_cov: &Matrix6<f64>,
+        velocity_sigma_m_s: f64,
+    ) {
+        let s = &mut self.state;
+        s.q_ecef_imu = fix.q_ecef_cam * q_imu_cam.inverse();
+        s.position = Ecef(fix.position.0 - s.map_offset_ecef_m);
+        let p = &mut self.covariance;
+        for i in 0..6 {
+            for j in 0..N {
+                p[(i, j)] = 0.0;
+                p[(j, i)] = 0.0;
+            }
+        }
+        p.fixed_view_mut::<6, 6>(ATT, ATT).copy_from(fix_cov);
+        for i in VEL..VEL + 3 {
+            p[(i, i)] = p[(i, i)].max(velocity_sigma_m_s * velocity_sigma_m_s);
+        }
+    }
+}
+
+/// `[log(q_a q_b^-1); p_a - p_b]`: pose `a` as a perturbation of `b`.
+pub fn pose_difference(a: &CameraPose, b: &CameraPose) -> Vector6<f64> {
+    let d = rotation_vector(&(a.q_ecef_cam * b.q_ecef_cam.inverse()));
+    let p = a.position.0 - b.position.0;
+    Vector6::new(d.x, d.y, d.z, p.x, p.y, p.z)
+}
+
+/// Pose `b` perturbed by `[dtheta; dp]` (the inverse of [`pose_difference`]).
+pub fn perturb(b: &CameraPose, d: &Vector6<f64>) -> CameraPose {
+    CameraPose::new(
+        Ecef(b.position.0 + Vector3::new(d[3], d[4], d[5])),
+        UnitQuaternion::from_scaled_axis(Vector3::new(d[0], d[1], d[2])) * b.q_ecef_cam,
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use trn_geodesy::{Geodetic, LocalFrame};
+
+    /// SplitMix64 with Box-Muller normals: seeded noise for the tests.
+    struct Rng(u64);
+
+    impl Rng {
+        fn new(seed: u64) -> Self {
+            Rng(seed)
+        }
+
+        fn uniform(&mut self) -> f64 {
+            self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
+            let mut z = self.0;
+            z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+            ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
+        }
+
+        fn normal(&mut self) -> f64 {
+            let (u1, u2) = (1.0 - self.uniform(), self.uniform());
+            (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+        }
+    }
+
+    /// A constant turn: a circle of radius `r` flown at `omega` rad/s in the
+    /// plane tangent to the ellipsoid at 30 km, the body's x axis along the
+    /// velocity and z down. Exact position, velocity, acceleration and
+    /// attitude at any time.
+    struct Turn {
+        centre: Vector3<f64>,
+        e: Matrix3<f64>,
+        r: f64,
+        omega: f64,
+    }
+
+    struct Truth {
+        p: Vector3<f64>,
+        v: Vector3<f64>,
+        a: Vector3<f64>,
+        q: UnitQuaternion<f64>,
+    }
+
+    impl Turn {
+        fn new() -> Self {
+            let frame = LocalFrame::at(Geodetic::new(36.6, -118.3, 30_000.0));
+            Turn { centre: frame.origin_ecef().0, e: frame.r_ecef_enu(), r: 2000.0, omega: 0.1 }
+        }
+
+        fn at(&self, t: f64) -> Truth {
+            let (s, c) = (self.omega * t).sin_cos();
+            let (e1, e2, e3) = (self.e.column(0), self.e.column(1), self.e.column(2));
+            let p = self.centre + (e1 * c + e2 * s) * self.r;
+            let v = (-e1 * s + e2 * c) * (self.r * self.omega);
+            let a = -(e1 * c + e2 * s) * (self.r * self.omega * self.omega);
+            let x = v.normalize();
+            let z = -e3.into_owned();
+            let y = z.cross(&x);
+            let m = Matrix3::from_columns(&[x, y, z]);
+            let q = UnitQuaternion::from_rotation_matrix(&nalgebra::Rotation3::from_matrix_unchecked(m));
+            Truth { p, v, a, q }
+        }
+
+        /// Gyro (mean inertial rate over the interval ending at each time)
+        /// and accelerometer (specific force at each time) samples, with
+        /// constant biases and white noise of the given sigmas per sample.
+        fn imu(
+            &self,
+            rate_hz: f64,
+            t_end: f64,
+            noise: Option<(&InsErrors, &InsInit, u64)>,
+        ) -> (Vec<ImuSample>, Vector3<f64>, Vector3<f64>) {
+            let dt = 1.0 / rate_hz;
+            let we = Vector3::new(0.0, 0.0, EARTH_RATE_RAD_S);
+            let inertial = |t: f64| {
+                UnitQuaternion::from_axis_angle(&Vector3::z_axis(), EARTH_RATE_RAD_S * t) * self.at(t).q
+            };
+            let mut rng = Rng::new(noise.map_or(0, |n| n.2));
+            let mut draw = |sigma: f64| Vector3::new(rng.normal(), rng.normal(), rng.normal()) * sigma;
+            let (bg, ba) = match noise {
+                Some((_, init, _)) => (draw(init.gyro_bias_rad_s), draw(init.accel_bias_m_s2)),
+                None => (Vector3::zeros(), Vector3::zeros()),
+            };
+            let n = (t_end * rate_hz).round() as usize;
+            let mut out = Vec::with_capacity(n + 1);
+            for k in 0..=n {
+                let t = k as f64 * dt;
+                let truth = self.at(t);
+                let mut w = rotation_vector(&(inertial(t - dt).inverse() * inertial(t))) / dt;
+                let f_ecef = truth.a + 2.0 * we.cross(&truth.v) - gravity_ecef(&Ecef(truth.p));
+                let mut f = truth.q.inverse() * f_ecef;
+                if let Some((e, _, _)) = noise {
+                    w += bg + draw(e.gyro_arw_rad_sqrt_s / dt.sqrt());
+                    f += ba + draw(e.accel_vrw_m_s_sqrt_s / dt.sqrt());
+                }
+                out.push(ImuSample { t, w_imu_rad_s: w, f_imu_m_s2: Some(f) });
+            }
+            (out, bg, ba)
+        }
+
+        fn state(&self, t: f64) -> InsState {
+            let truth = self.at(t);
+            InsState {
+                t,
+                position: Ecef(truth.p),
+                velocity_ecef_m_s: truth.v,
+                q_ecef_imu: truth.q,
+                gyro_bias_imu_rad_s: Vector3::zeros(),
+                accel_bias_imu_m_s2: Vector3::zeros(),
+                map_offset_ecef_m: Vector3::zeros(),
+            }
+        }
+    }
+
+    fn errors() -> InsErrors {
+        InsErrors {
+            gyro_arw_rad_sqrt_s: 0.15f64.to_radians() / 60.0,
+            gyro_bias_walk_rad_s_sqrt_s: 0.0,
+            accel_vrw_m_s_sqrt_s: 0.001,
+            accel_bias_walk_m_s2_sqrt_s: 0.0,
+            free_accel_m_s2_sqrt_s: 3.0,
+            map_sigma_m: 0.0,
+            map_tau_s: 0.0,
+        }
+    }
+
+    fn init() -> InsInit {
+        InsInit {
+            attitude_rad: 0.05f64.to_radians(),
+            position_m: 20.0,
+            velocity_m_s: 1.0,
+            gyro_bias_rad_s: 10f64.to_radians() / 3600.0,
+            accel_bias_m_s2: 0.02,
+        }
+    }
+
+    /// Error `[dtheta; dr; dv]` of a state against the truth.
+    fn error9(s: &InsState, truth: &Truth) -> SMatrix<f64, 9, 1> {
+        let mut e = SMatrix::<f64, 9, 1>::zeros();
+        e.fixed_rows_mut::<3>(0).copy_from(&rotation_vector(&(truth.q * s.q_ecef_imu.inverse())));
+        e.fixed_rows_mut::<3>(3).copy_from(&(truth.p - s.position.0));
+        e.fixed_rows_mut::<3>(6).copy_from(&(truth.v - s.velocity_ecef_m_s));
+        e
+    }
+
+    #[test]
+    fn a_constant_turn_is_flown_on_the_imu_alone() {
+        // 60 s of a 2 km turn at 200 m/s (2 g of centripetal acceleration
+        // sideways, the body turning at 5.7 deg/s), exact samples at 200 Hz.
+        let turn = Turn::new();
+        let (imu, _, _) = turn.imu(200.0, 61.0, None);
+        let mut f = InsFilter::new(turn.state(0.0), &init(), errors());
+        for t in [0.5, 17.25, 33.3, 60.0] {
+            f.propagate(t, &imu);
+            let e = error9(&f.state, &turn.at(t));
+            let (att, pos, vel) =
+                (e.fixed_rows::<3>(0).norm(), e.fixed_rows::<3>(3).norm(), e.fixed_rows::<3>(6).norm());
+            assert!(att < 1e-6 && pos < 0.5 && vel < 0.02, "t {t}: {att:.2e} rad, {pos:.3} m, {vel:.4} m/s");
+        }
+        // Without the accelerometer the velocity is held: after 10 s the
+        // turn's 2 g are missing.
+        let bare: Vec<ImuSample> = imu.iter().map(|s| ImuSample { f_imu_m_s2: None, ..*s }).collect();
+        let mut g = InsFilter::new(turn.state(0.0), &init(), errors());
+        g.propagate(10.0, &bare);
+        let pos = (g.state.position.0 - turn.at(10.0).p).norm();
+        assert!(pos > 500.0, "{pos}");
+        assert!(g.covariance[(POS, POS)].sqrt() > 10.0, "the free velocity walk grows the position sigma");
+    }
+
+    #[test]
+    fn the_covariance_follows_the_errors_through_propagation_and_updates() {
+        // Monte Carlo over noisy IMUs with random biases and a wrong start
+        // drawn from the initial covariance: a pose fix each second (noise
+        // drawn from its covariance) updates the filter. The NEES of
+        // [attitude; position; velocity] (9 dof) averaged over runs and
+        // epochs is near 9, and the biases are learnt as the body turns.
+        let turn = Turn::new();
+        let (e, i) = (errors(), init());
+        let runs = 12;
+        let (mut nees, mut count) = (0.0, 0);
+        let mut bias_err = 0.0;
+        let q_imu_cam = UnitQuaternion::from_euler_angles(0.1, -0.2, 0.3);
+        for run in 0..runs {
+            let (imu, bg, ba) = turn.imu(100.0, 31.0, Some((&e, &i, run + 1)));
+            let mut rng = Rng::new(1000 + run);
+            let mut draw = |sigma: f64| Vector3::new(rng.normal(), rng.normal(), rng.normal()) * sigma;
+            let mut start = turn.state(0.0);
+            start.q_ecef_imu = UnitQuaternion::from_scaled_axis(draw(i.attitude_rad)) * start.q_ecef_imu;
+            start.position.0 += draw(i.position_m);
+            start.velocity_ecef_m_s += draw(i.velocity_m_s);
+            let mut f = InsFilter::new(start, &i, e);
+            let r = Matrix6::from_diagonal(&Vector6::new(1e-8, 1e-8, 1e-8, 25.0, 25.0, 25.0));
+            for k in 1..=30 {
+                let t = k as f64;
+                f.propagate(t, &imu);
+                let truth = turn.at(t);
+                let err = error9(&f.state, &truth);
+                let p9 = f.covariance.fixed_view::<9, 9>(0, 0).into_owned();
+                nees += (err.transpose() * p9.try_inverse().unwrap() * err)[(0, 0)];
+                count += 1;
+                let true_cam = CameraPose::new(Ecef(truth.p), truth.q * q_imu_cam);
+                let mut d = Vector6::zeros();
+                d.fixed_rows_mut::<3>(0).copy_from(&draw(1e-4));
+                d.fixed_rows_mut::<3>(3).copy_from(&draw(5.0));
+                let chi2 = f.update_with_pose(&q_imu_cam, &perturb(&true_cam, &d), &r).unwrap();
+                assert!(chi2 < 40.0, "run {run} t {t}: chi2 {chi2}");
+            }
+            bias_err += (f.state.gyro_bias_imu_rad_s - bg).norm() / bg.norm().max(1e-9);
+            let _ = ba;
+        }
+        let nees = nees / count as f64;
+        println!(
+            "INS constant turn, {runs} runs: mean NEES {nees:.2} (9 dof), gyro bias error {:.0}% of the bias",
+            100.0 * bias_err / runs as f64
+        );
+        assert!((5.0..14.0).contains(&nees), "{nees}");
+        assert!(bias_err / (runs as f64) < 0.5, "{}", bias_err / runs as f64);
+    }
+
+    #[test]
+    fn conditioning_on_a_pose_posterior_is_the_kalman_update() {
+        // update_with_pose goes through condition_on_pose; check it against
+        // the textbook update with H = [I6 0 ...] (map offset on), P random.
+        let turn = Turn::new();
+        let mut e = errors();
+        e.map_sigma_m = 15.0;
+        e.map_tau_s = 20.0;
+        let mut f = InsFilter::new(turn.state(0.0), &init(), e);
+        let mut rng = Rng::new(3);
+        let a = Covariance::from_fn(|_, _| rng.normal());
+        let scale = Covariance::from_diagonal(&SMatrix::<f64, N, 1>::from_fn(|i, _| {
+            [1e-3, 10.0, 1.0, 1e-5, 0.01, 10.0][i / 3]
+        }));
+        f.covariance = scale * (a * a.transpose() / N as f64 + Covariance::identity()) * scale;
+        let q_imu_cam = UnitQuaternion::identity();
+        let (pred, _) = f.apparent_pose(&q_imu_cam);
+        let y = Vector6::new(2e-4, -1e-4, 3e-4, 12.0, -7.0, 4.0);
+        let r = Matrix6::from_diagonal(&Vector6::new(1e-7, 1e-7, 1e-7, 30.0, 30.0, 30.0));
+        let h = InsFilter::pose_rows();
+        let p = f.covariance;
+        let s = h * p * h.transpose() + r;
+        let k = p * h.transpose() * s.try_inverse().unwrap();
+        let want_p = (Covariance::identity() - k * h) * p;
+        let want_dx = k * y;
+        let before = f.state;
+        let mut g = f.clone();
+        g.update_with_pose(&q_imu_cam, &perturb(&pred, &y), &r).unwrap();
+        assert!((g.covariance - want_p).norm() < 1e-9 * want_p.norm(), "covariance");
+        let dv = g.state.velocity_ecef_m_s - before.velocity_ecef_m_s;
+        let want_dv = want_dx.fixed_rows::<3>(VEL).into_owned();
+        assert!((dv - want_dv).norm() < 1e-6 * want_dv.norm().max(1e-9), "{dv} {want_dv}");
+        let dm = g.state.map_offset_ecef_m - before.map_offset_ecef_m;
+        assert!((dm - want_dx.fixed_rows::<3>(MAP)).norm() < 1e-6 * dm.norm().max(1e-9));
+        let dbg = g.state.gyro_bias_imu_rad_s - before.gyro_bias_imu_rad_s;
+        assert!((dbg - want_dx.fixed_rows::<3>(GYRO_BIAS)).norm() < 1e-6 * dbg.norm().max(1e-12));
+    }
+
+    #[test]
+    fn inflating_keeps_correlations_and_a_reset_takes_the_fix() {
+        let turn = Turn::new();
+        let mut f = InsFilter::new(turn.state(0.0), &init(), errors());
+        let (imu, _, _) = turn.imu(100.0, 3.0, None);
+        f.propagate(2.0, &imu);
+        let before = f.covariance;
+        f.inflate(2.0);
+        assert!((f.covariance[(POS, POS)] - 4.0 * before[(POS, POS)]).abs() < 1e-9 * before[(POS, POS)]);
+        assert!(
+            (f.covariance[(POS, VEL)] - 4.0 * before[(POS, VEL)]).abs() <= 1e-9 * before[(POS, VEL)].abs()
+        );
+        assert_eq!(f.covariance[(GYRO_BIAS, GYRO_BIAS)], before[(GYRO_BIAS, GYRO_BIAS)]);
+        // (The map offset is off: its block is zero.)
+        assert!(f.covariance.fixed_view::<15, 15>(0, 0).into_owned().cholesky().is_some());
+        let fix = CameraPose::new(Ecef(turn.at(2.0).p + Vector3::new(300.0, 0.0, 0.0)), turn.at(2.0).q);
+        let cov = Matrix6::identity() * 100.0;
+        f.reset_pose(&UnitQuaternion::identity(), &fix, &cov, 50.0);
+        assert_eq!(f.state.position, fix.position);
+        assert_eq!(f.covariance.fixed_view::<6, 6>(0, 0).into_owned(), cov);
+        assert_eq!(f.covariance[(POS, VEL)], 0.0);
+        assert!(f.covariance[(VEL, VEL)] >= 2500.0);
+        // (The map offset is off: its block is zero.)
+        assert!(f.covariance.fixed_view::<15, 15>(0, 0).into_owned().cholesky().is_some());
+    }
+}

@@ -179,6 +179,11 @@ fn bad_inputs_are_named() {
         ("--principal-point-sigma", "0"),
         ("--calibration-frame-sigma", "nan"),
         ("--landmark-height-sigma", "inf"),
+        ("--filter", "kalman"),
+        ("--init-velocity-sigma", "0"),
+        ("--accel-bias", "nan"),
+        ("--map-sigma", "inf"),
+        ("--map-tau", "0"),
     ] {
         let o = run(&["navigate", "--db", "x", "--flight", "y", "--out", "z", opt, value]);
         assert!(!o.status.success(), "{opt} {value} accepted");

@@ -44,7 +44,7 @@ use trn_geodesy::gravity::{gravitation_gradient, gravity_ecef};
 use trn_geodesy::{Ecef, EARTH_RATE_RAD_S};
 use trn_vision::pnp::rotation_vector;
 
-use crate::propagate::strapdown_increment;
+use crate::propagate::{for_each_segment, strapdown_increment};
 
 /// Dimension of the error state.
 pub const N: usize = 18;
@@ -168,35 +168,22 @@ impl InsFilter {
             return;
         }
         let mut acc = Accumulated::default();
-        let start = imu.partition_point(|s| s.t <= t0);
-        let mut covered = t0;
-        for k in start..imu.len() {
-            let end = imu[k].t;
-            let begin = if k > 0 { imu[k - 1].t } else { imu.get(1).map_or(end, |n| end - (n.t - end)) };
-            let (a, b) = (begin.max(t0), end.min(t1));
-            if b > a {
-                if a > covered {
-                    self.step(a - covered, None, Force::Free, &mut acc);
+        for_each_segment(imu, t0, t1, |a, b, sample| {
+            let Some(k) = sample else {
+                self.step(b - a, None, Force::Free, &mut acc);
+                return;
+            };
+            let (begin, end) = (if k > 0 { imu[k - 1].t } else { a }, imu[k].t);
+            let force = match (k.checked_sub(1).and_then(|j| imu[j].f_imu_m_s2), imu[k].f_imu_m_s2) {
+                (Some(f0), Some(f1)) if end > begin => {
+                    let s = ((0.5 * (a + b) - begin) / (end - begin)).clamp(0.0, 1.0);
+                    Force::Measured(f0 + (f1 - f0) * s)
                 }
-                let force = match (k.checked_sub(1).and_then(|j| imu[j].f_imu_m_s2), imu[k].f_imu_m_s2) {
-                    (Some(f0), Some(f1)) if end > begin => {
-                        let mid = 0.5 * (a + b);
-                        let s = ((mid - begin) / (end - begin)).clamp(0.0, 1.0);
-                        Force::Measured(f0 + (f1 - f0) * s)
-                    }
-                    (_, Some(f1)) => Force::Measured(f1),
-                    _ => Force::Free,
-                };
-                self.step(b - a, Some(&imu[k].w_imu_rad_s), force, &mut acc);
-                covered = b;
-            }
-            if end >= t1 {
-                break;
-            }
-        }
-        if t1 > covered {
-            self.step(t1 - covered, None, Force::Free, &mut acc);
-        }
+                (_, Some(f1)) => Force::Measured(f1),
+                _ => Force::Free,
+            };
+            self.step(b - a, Some(&imu[k].w_imu_rad_s), force, &mut acc);
+        });
         self.flush(&mut acc);
         self.state.t = t1;
     }

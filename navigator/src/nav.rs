@@ -280,15 +280,21 @@ pub struct Navigator<'a> {
 struct Prediction {
     /// Where the images should see the camera.
     guess: CameraPose,
-    /// The attitude filter's covariance carried to the frame
-    /// ([`FilterMode::Fixes`]; zero otherwise).
-    attitude: Matrix6<f64>,
     /// Covariance of the guess' attitude (rad^2, ECEF): the frame's prior.
     att_cov: Matrix3<f64>,
     /// The guess' position error (m, 1 sigma, 3D).
     sigma_m: f64,
-    /// The inertial filter carried to the frame.
-    ins: Option<InsFilter>,
+    filter: Carried,
+}
+
+/// The filter carried to a frame (one per frame, moved by value: the size
+/// difference of the variants costs nothing worth a box).
+#[allow(clippy::large_enum_variant)]
+enum Carried {
+    /// [`FilterMode::Fixes`]: the attitude filter's covariance.
+    Attitude(Matrix6<f64>),
+    /// The inertial filter.
+    Ins(InsFilter),
 }
 
 const PYRAMID_LEVELS: usize = 4;
@@ -446,10 +452,9 @@ impl<'a> Navigator<'a> {
             let tan_corner2 = corner.x * corner.x + corner.y * corner.y;
             return Prediction {
                 guess,
-                attitude: Matrix6::zeros(),
                 att_cov: cov.fixed_view::<3, 3>(0, 0).into_owned(),
                 sigma_m: (across2 + along2 * tan_corner2).sqrt().max(2.0),
-                ins: Some(f),
+                filter: Carried::Ins(f),
             };
         }
         let dt = t - self.t;
@@ -473,7 +478,7 @@ impl<'a> Navigator<'a> {
             (CameraPose::new(position, self.pose.q_ecef_cam), cov)
         };
         let att_cov = attitude.fixed_view::<3, 3>(0, 0).into_owned();
-        Prediction { guess, attitude, att_cov, sigma_m, ins: None }
+        Prediction { guess, att_cov, sigma_m, filter: Carried::Attitude(attitude) }
     }
 
     /// The camera for a frame at `t`: the calibration's estimate, with the
@@ -550,13 +555,16 @@ impl<'a> Navigator<'a> {
 
     /// The pose to report for a frame without an accepted fix.
     fn carry(&mut self, t: f64, pred: Prediction) {
-        let dt = (t - self.t).max(0.0);
-        self.sigma_m += self.params.velocity_sigma_m_s * dt;
-        self.filter.carry(pred.attitude);
-        self.pose = pred.guess;
-        if let Some(f) = pred.ins {
-            self.pose = f.pose(&self.q_imu_cam).0;
-            self.ins = Some(f);
+        match pred.filter {
+            Carried::Attitude(attitude) => {
+                self.sigma_m += self.params.velocity_sigma_m_s * (t - self.t).max(0.0);
+                self.filter.carry(attitude);
+                self.pose = pred.guess;
+            }
+            Carried::Ins(f) => {
+                self.pose = f.pose(&self.q_imu_cam).0;
+                self.ins = Some(f);
+            }
         }
         self.t = t;
     }
@@ -654,7 +662,7 @@ impl<'a> Navigator<'a> {
                     Some(Rejection::FewInliers { inliers: sol.inliers })
                 } else if (sol.inliers as f64) < self.params.min_inlier_share * sol.n_matches as f64 {
                     Some(Rejection::InlierShare { inliers: sol.inliers, matches: sol.n_matches })
-                } else if pred.ins.is_none() || self.last_fix.is_none() {
+                } else if matches!(pred.filter, Carried::Attitude(_)) || self.last_fix.is_none() {
                     // With the inertial filter, the height gate checks the
                     // first fix against the initial guess; after it the
                     // filter's innovation test (below) judges every fix.
@@ -665,7 +673,7 @@ impl<'a> Navigator<'a> {
                 let frame = if rejection.is_none() { self.calibration_frame(&sol) } else { None };
                 // An acquisition searched the whole prior: nothing to test
                 // it against (its pose restarts the filter's, below).
-                if let (None, Some(f), false) = (rejection, &pred.ins, sol.acquisition) {
+                if let (None, Carried::Ins(f), false) = (rejection, &pred.filter, sol.acquisition) {
                     let consider = self.calibration_consider(frame.as_ref());
                     rejection = self.consistency(t, f, &sol, &consider);
                 }
@@ -674,16 +682,20 @@ impl<'a> Navigator<'a> {
                 if accepted {
                     let calibration_cov = self.calibrate(t, &mut sol, frame);
                     self.last_fix = Some((t, sol.pose));
-                    let ecef = match pred.ins {
-                        Some(f) => self.accept_ins(t, f, &sol, calibration_cov),
-                        None => self.accept_fix(t, &pred, &sol) + calibration_cov,
+                    let ecef = match pred.filter {
+                        Carried::Ins(f) => self.accept_ins(t, f, &sol, calibration_cov),
+                        Carried::Attitude(attitude) => {
+                            self.accept_fix(t, &pred.guess, &attitude, &sol) + calibration_cov
+                        }
                     };
+                    self.log_fix(t, &ecef);
                     covariance = Some(PoseCovariance { t, position: self.pose.position.to_geodetic(), ecef });
-                    self.log_fix(t);
                 } else {
                     debug!("t {t:.3}: fix rejected ({} inliers): {rejection:?}", sol.inliers);
                     let mut pred = pred;
-                    if let (Some(Rejection::Inconsistent { .. }), Some(f)) = (rejection, pred.ins.as_mut()) {
+                    if let (Some(Rejection::Inconsistent { .. }), Carried::Ins(f)) =
+                        (rejection, &mut pred.filter)
+                    {
                         // The image says the filter may be wrong: doubt it,
                         // so the next frames search wider and a run of such
                         // frames gets through the gate.
@@ -725,7 +737,13 @@ impl<'a> Navigator<'a> {
     /// An accepted fix without the inertial filter: the fix is the pose;
     /// the velocity is fitted to the last fixes, the attitude filter updated.
     /// Returns the fix's covariance.
-    fn accept_fix(&mut self, t: f64, pred: &Prediction, sol: &Solution) -> Matrix6<f64> {
+    fn accept_fix(
+        &mut self,
+        t: f64,
+        guess: &CameraPose,
+        attitude: &Matrix6<f64>,
+        sol: &Solution,
+    ) -> Matrix6<f64> {
         self.recent_fixes.push_back((t, sol.pose.position.0));
         while self.recent_fixes.front().is_some_and(|f| t - f.0 > VELOCITY_WINDOW_S) {
             self.recent_fixes.pop_front();
@@ -741,29 +759,23 @@ impl<'a> Navigator<'a> {
         let att_cov = sol.attitude_covariance();
         self.sigma_m = sol.position_covariance().trace().max(0.0).sqrt().clamp(2.0, 200.0);
         if !self.params.use_gyro || sol.prior_loosened {
-            self.filter.reset_attitude(&pred.attitude, &att_cov);
+            self.filter.reset_attitude(attitude, &att_cov);
         } else {
-            let dtheta = rotation_vector(&(sol.pose.q_ecef_cam * pred.guess.q_ecef_cam.inverse()));
-            self.filter.update(&pred.attitude, &dtheta, &att_cov);
+            let dtheta = rotation_vector(&(sol.pose.q_ecef_cam * guess.q_ecef_cam.inverse()));
+            self.filter.update(attitude, &dtheta, &att_cov);
         }
         sol.covariance
     }
 
-    /// The accepted estimate's uncertainty and the gyro bias, at debug level.
-    fn log_fix(&self, t: f64) {
+    /// The accepted estimate's covariance `cov` (as reported), velocity and
+    /// gyro bias, at debug level.
+    fn log_fix(&self, t: f64, cov: &Matrix6<f64>) {
         if !tracing::enabled!(tracing::Level::DEBUG) {
             return;
         }
-        let (cov, bias) = match &self.ins {
-            Some(f) => (f.pose(&self.q_imu_cam).1, f.state.gyro_bias_imu_rad_s),
-            None => {
-                let mut c = Matrix6::zeros();
-                c.fixed_view_mut::<3, 3>(0, 0).copy_from(&self.filter.covariance.fixed_view::<3, 3>(0, 0));
-                c[(3, 3)] = self.sigma_m.powi(2) / 3.0;
-                c[(4, 4)] = c[(3, 3)];
-                c[(5, 5)] = c[(3, 3)];
-                (c, self.filter.bias_imu_rad_s)
-            }
+        let bias = match &self.ins {
+            Some(f) => f.state.gyro_bias_imu_rad_s,
+            None => self.filter.bias_imu_rad_s,
         };
         let r = trn_geodesy::LocalFrame::at(self.pose.position.to_geodetic()).r_ecef_enu();
         let p = r.transpose() * cov.fixed_view::<3, 3>(0, 0) * r;

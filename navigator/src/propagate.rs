@@ -32,6 +32,37 @@ pub fn propagate(
     propagate_with_bias(q_ecef_imu, t0, t1, imu, &Vector3::zeros()).q_ecef_imu
 }
 
+/// Walks `[t0, t1]` through the IMU samples: `visit(a, b, Some(k))` for the
+/// part `[a, b]` that sample `k`'s interval covers (each sample holds over
+/// the interval ending at its time; the first sample's is taken as long as
+/// the second's), `visit(a, b, None)` for time no sample covers (before the
+/// first sample or after the last), in time order.
+pub fn for_each_segment(imu: &[ImuSample], t0: f64, t1: f64, mut visit: impl FnMut(f64, f64, Option<usize>)) {
+    if !(t1 > t0) {
+        return;
+    }
+    let start = imu.partition_point(|s| s.t <= t0);
+    let mut covered = t0;
+    for k in start..imu.len() {
+        let end = imu[k].t;
+        let begin = if k > 0 { imu[k - 1].t } else { imu.get(1).map_or(end, |n| end - (n.t - end)) };
+        let (a, b) = (begin.max(t0), end.min(t1));
+        if b > a {
+            if a > covered {
+                visit(covered, a, None);
+            }
+            visit(a, b, Some(k));
+            covered = b;
+        }
+        if end >= t1 {
+            break;
+        }
+    }
+    if t1 > covered {
+        visit(covered, t1, None);
+    }
+}
+
 /// An attitude carried through the gyro.
 #[derive(Clone, Copy, Debug)]
 pub struct Propagated {
@@ -61,26 +92,17 @@ pub fn propagate_with_bias(
     // The sensitivity ignores the Earth's turn over the interval (< 1e-4 rad).
     let r0 = q_ecef_imu.to_rotation_matrix();
     let mut body = UnitQuaternion::identity();
-    let start = imu.partition_point(|s| s.t <= t0);
-    let mut covered = t0;
-    for k in start..imu.len() {
-        let end = imu[k].t;
-        let begin = if k > 0 { imu[k - 1].t } else { imu.get(1).map_or(end, |n| end - (n.t - end)) };
-        let (a, b) = (begin.max(t0), end.min(t1));
-        if b > a {
+    for_each_segment(imu, t0, t1, |a, b, sample| match sample {
+        Some(k) => {
             let dq = strapdown_increment(&(imu[k].w_imu_rad_s - bias_imu_rad_s), b - a);
             // Mid-interval attitude (second order in the step).
             let mid = body * UnitQuaternion::from_scaled_axis(dq.scaled_axis() * 0.5);
             sens += (r0 * mid.to_rotation_matrix()).into_inner() * (b - a);
             body *= dq;
-            covered = b;
         }
-        if end >= t1 {
-            break;
-        }
-    }
-    // Time no sample covers: the attitude stays fixed in inertial space.
-    sens += (r0 * body.to_rotation_matrix()).into_inner() * (t1 - covered).max(0.0);
+        // Time no sample covers: the attitude stays fixed in inertial space.
+        None => sens += (r0 * body.to_rotation_matrix()).into_inner() * (b - a),
+    });
     let earth = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), -EARTH_RATE_RAD_S * (t1 - t0));
     Propagated { q_ecef_imu: earth * q_ecef_imu * body, bias_to_attitude: sens }
 }

@@ -63,17 +63,7 @@ impl AttitudePrior {
     /// `W` with `W^T W = covariance^-1`; `None` unless the covariance is
     /// finite, symmetric and positive definite.
     pub fn sqrt_information(&self) -> Option<Matrix3<f64>> {
-        let p = self.covariance;
-        let scale = p.abs().max();
-        if !p.iter().all(|x| x.is_finite())
-            || !(scale > 0.0)
-            || (p - p.transpose()).abs().max() > 1e-9 * scale
-        {
-            return None;
-        }
-        // covariance = L L^T  =>  covariance^-1 = L^-T L^-1, so W = L^-1.
-        let l = p.cholesky()?.l();
-        l.solve_lower_triangular(&Matrix3::identity())
+        sqrt_information(&self.covariance)
     }
 
     /// Squared Mahalanobis distance of `q_ecef_cam` from the prior (chi-square
@@ -100,17 +90,19 @@ impl PosePrior {
     /// `W` with `W^T W = covariance^-1`; `None` unless the covariance is
     /// finite, symmetric and positive definite.
     pub fn sqrt_information(&self) -> Option<Matrix6<f64>> {
-        let p = self.covariance;
-        let scale = p.abs().max();
-        if !p.iter().all(|x| x.is_finite())
-            || !(scale > 0.0)
-            || (p - p.transpose()).abs().max() > 1e-9 * scale
-        {
-            return None;
-        }
-        let l = p.cholesky()?.l();
-        l.solve_lower_triangular(&Matrix6::identity())
+        sqrt_information(&self.covariance)
     }
+}
+
+/// `W` with `W^T W = p^-1` (`W = L^-1` of `p = L L^T`); `None` unless `p` is
+/// finite, symmetric and positive definite.
+fn sqrt_information<const N: usize>(p: &SMatrix<f64, N, N>) -> Option<SMatrix<f64, N, N>> {
+    let scale = p.abs().max();
+    if !p.iter().all(|x| x.is_finite()) || !(scale > 0.0) || (p - p.transpose()).abs().max() > 1e-9 * scale {
+        return None;
+    }
+    let l = p.cholesky()?.l();
+    l.solve_lower_triangular(&SMatrix::<f64, N, N>::identity())
 }
 
 /// A refined pose.

@@ -6,6 +6,7 @@
 # filter, the position error at the last frame before the outage, the drift
 # at its last frame, the time from its end to the next fix and the mean error
 # of the fixes after it; results in target/realistic/outage/results.md.
+# (Drift: the change of the east/north/up error vector over the outage.)
 # Usage: scripts/bench_outage.sh [FLIGHT [T0 [DURATION]]]   (default: sierra-balloon-nadir 15 30)
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -59,7 +60,11 @@ after = [r for r in fr if r['t'] >= t0 + dur]
 first_fix = next((r['t'] - (t0 + dur) for r in after if r['status'] == 'fix'), float('nan'))
 fixes_after = [err(r) for r in after if r['status'] == 'fix']
 mean_after = sum(fixes_after) / len(fixes_after) if fixes_after else float('nan')
-print(f"| {filt} | {err(before[-1]):.1f} | {err(during[-1]):.1f} | {err(during[-1]) - err(before[-1]):+.1f} | {first_fix:.1f} | {mean_after:.1f} |")
+# Drift: how far the estimate moved against the truth over the outage (the
+# change of the east/north/up error vector, not of its length).
+e0, e1 = before[-1]['error']['enu_m'], during[-1]['error']['enu_m']
+drift = sum((a - b) ** 2 for a, b in zip(e0, e1)) ** 0.5
+print(f"| {filt} | {err(before[-1]):.1f} | {err(during[-1]):.1f} | {drift:.1f} | {first_fix:.1f} | {mean_after:.1f} |")
 PY
 )")
 done

@@ -330,6 +330,10 @@ struct NavigateArgs {
     /// ... and how long that shift stays alike (s).
     #[arg(long, default_value_t = 10.0)]
     map_tau: f64,
+    /// Camera-IMU time offset the inertial filter estimates: its prior
+    /// (ms, 1 sigma; 0: the stamps are trusted).
+    #[arg(long, default_value_t = 10.0)]
+    time_offset_sigma: f64,
     /// Trust camera.json's focal length instead of estimating it in flight.
     #[arg(long)]
     no_self_calibration: bool,
@@ -650,6 +654,11 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
         anyhow::ensure!(v.is_finite() && v > 0.0, "invalid option {name} {v}: must be a number > 0");
     }
     anyhow::ensure!(
+        a.time_offset_sigma.is_finite() && a.time_offset_sigma >= 0.0,
+        "invalid option --time-offset-sigma {}: must be milliseconds >= 0",
+        a.time_offset_sigma
+    );
+    anyhow::ensure!(
         a.map_sigma.is_finite() && a.map_sigma >= 0.0,
         "invalid option --map-sigma {}: must be metres >= 0",
         a.map_sigma
@@ -686,6 +695,7 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
     params.accel_bias_m_s2 = a.accel_bias;
     params.map_sigma_m = a.map_sigma;
     params.map_tau_s = a.map_tau;
+    params.time_offset_sigma_s = a.time_offset_sigma / 1e3;
     params.sun = a.sun;
     params.shading_weight = a.shading_weight;
     params.gyro_arw_deg_sqrt_s = a.gyro_arw / 60.0;
@@ -715,18 +725,23 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
     trn_flight::write_pose_covariances(&cov_path, &run.covariances)?;
     let report = run.report;
     tracing::info!(
-        "{} of {} frames processed, {} fixes ({} rejected for too few inliers, {} for too small a share of inliers, {} for their height), median {:.1} ms per frame; wrote {}, {} and {}",
+        "{} of {} frames processed, {} fixes ({} rejected for too few inliers, {} for too small a share of inliers, {} for inliers on a line or in a cluster, {} for their height, {} as inconsistent with the inertial filter), median {:.1} ms per frame; wrote {}, {} and {}",
         report.processed,
         report.frames,
         report.fixes,
         report.rejected.few_inliers,
         report.rejected.inlier_share,
+        report.rejected.spread,
         report.rejected.height,
+        report.rejected.inconsistent,
         report.median_ms,
         a.out.display(),
         matches_path.display(),
         cov_path.display()
     );
+    if let Some(o) = &report.time_offset {
+        tracing::info!("camera-IMU time offset: {:+.2} ms +- {:.2} ms", o.offset_ms, o.sigma_ms);
+    }
     if let Some(c) = &report.calibration {
         tracing::info!(
             "self-calibration: focal length {:+.3}% +- {:.3}% of camera.json's ({} fixes used, {} too weak, {} refused)",

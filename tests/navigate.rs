@@ -184,6 +184,7 @@ fn bad_inputs_are_named() {
         ("--accel-bias", "nan"),
         ("--map-sigma", "inf"),
         ("--map-tau", "0"),
+        ("--time-offset-sigma", "nan"),
     ] {
         let o = run(&["navigate", "--db", "x", "--flight", "y", "--out", "z", opt, value]);
         assert!(!o.status.success(), "{opt} {value} accepted");

@@ -47,7 +47,7 @@ use trn_vision::pnp::rotation_vector;
 use crate::propagate::{for_each_segment, strapdown_increment};
 
 /// Dimension of the error state.
-pub const N: usize = 18;
+pub const N: usize = 19;
 /// Offsets of the error state's blocks.
 pub const ATT: usize = 0;
 pub const POS: usize = 3;
@@ -55,6 +55,7 @@ pub const VEL: usize = 6;
 pub const GYRO_BIAS: usize = 9;
 pub const ACCEL_BIAS: usize = 12;
 pub const MAP: usize = 15;
+pub const TIME: usize = 18;
 
 pub type Covariance = SMatrix<f64, N, N>;
 
@@ -86,6 +87,8 @@ pub struct InsInit {
     pub velocity_m_s: f64,
     pub gyro_bias_rad_s: f64,
     pub accel_bias_m_s2: f64,
+    /// Camera-IMU time offset (s; 0: not estimated).
+    pub time_offset_s: f64,
 }
 
 /// The estimated state (the nominal state of the error-state filter).
@@ -99,6 +102,12 @@ pub struct InsState {
     pub accel_bias_imu_m_s2: Vector3<f64>,
     /// Apparent minus true position of what the images see (m, ECEF).
     pub map_offset_ecef_m: Vector3<f64>,
+    /// An image stamped `t` (IMU clock) was exposed at `t + time_offset_s`.
+    pub time_offset_s: f64,
+    /// The body's rotation rate relative to ECEF (rad/s, ECEF) at `t`, from
+    /// the last gyro sample less the bias: with the velocity, how a time
+    /// offset moves the pose the image sees (not a filter state).
+    pub rate_ecef_rad_s: Vector3<f64>,
 }
 
 /// State, covariance and error model.
@@ -153,6 +162,7 @@ impl InsFilter {
         block(&mut p, GYRO_BIAS, init.gyro_bias_rad_s);
         block(&mut p, ACCEL_BIAS, init.accel_bias_m_s2);
         block(&mut p, MAP, errors.map_sigma_m);
+        p[(TIME, TIME)] = init.time_offset_s * init.time_offset_s;
         Self { state, covariance: p, errors }
     }
 
@@ -198,6 +208,9 @@ impl InsFilter {
         let s = &mut self.state;
         let we = Vector3::new(0.0, 0.0, EARTH_RATE_RAD_S);
         let w = gyro.map_or(Vector3::zeros(), |w| w - s.gyro_bias_imu_rad_s);
+        if gyro.is_some() {
+            s.rate_ecef_rad_s = s.q_ecef_imu * w - we;
+        }
         let dq = strapdown_increment(&w, dt);
         // Mid-step attitude for the specific force (second order).
         let r_mid = (s.q_ecef_imu * UnitQuaternion::from_scaled_axis(w * (0.5 * dt))).to_rotation_matrix();
@@ -286,22 +299,37 @@ impl InsFilter {
         }
     }
 
-    /// `H` of the apparent camera pose `[dtheta; dr + dm]`.
-    fn pose_rows() -> SMatrix<f64, 6, N> {
+    /// `H` of the apparent camera pose `[dtheta + w dtau; dr + dm + v dtau]`.
+    fn pose_rows(&self) -> SMatrix<f64, 6, N> {
         let mut h = SMatrix::<f64, 6, N>::zeros();
         h.fixed_view_mut::<3, 3>(0, ATT).copy_from(&Matrix3::identity());
         h.fixed_view_mut::<3, 3>(3, POS).copy_from(&Matrix3::identity());
         h.fixed_view_mut::<3, 3>(3, MAP).copy_from(&Matrix3::identity());
+        h.fixed_view_mut::<3, 1>(0, TIME).copy_from(&self.state.rate_ecef_rad_s);
+        h.fixed_view_mut::<3, 1>(3, TIME).copy_from(&self.state.velocity_ecef_m_s);
         h
     }
 
-    /// The camera pose the images should see (the map offset added) and its
-    /// covariance (`[dtheta; dp]`, as `trn_vision::pnp`'s).
+    /// How the time offset moves the pose an image sees: `[w tau; v tau]`.
+    fn time_shift(&self) -> Vector6<f64> {
+        let s = &self.state;
+        let (w, v) = (s.rate_ecef_rad_s * s.time_offset_s, s.velocity_ecef_m_s * s.time_offset_s);
+        Vector6::new(w.x, w.y, w.z, v.x, v.y, v.z)
+    }
+
+    /// The camera pose the images should see (the map offset added, carried
+    /// over the time offset) and its covariance (`[dtheta; dp]`, as
+    /// `trn_vision::pnp`'s).
     pub fn apparent_pose(&self, q_imu_cam: &UnitQuaternion<f64>) -> (CameraPose, Matrix6<f64>) {
-        let h = Self::pose_rows();
+        let h = self.pose_rows();
         let s = &self.state;
         let pose = CameraPose::new(Ecef(s.position.0 + s.map_offset_ecef_m), s.q_ecef_imu * q_imu_cam);
-        (pose, h * self.covariance * h.transpose())
+        (perturb(&pose, &self.time_shift()), h * self.covariance * h.transpose())
+    }
+
+    /// The camera-IMU time offset's estimate and sigma (s).
+    pub fn time_offset(&self) -> (f64, f64) {
+        (self.state.time_offset_s, self.covariance[(TIME, TIME)].max(0.0).sqrt())
     }
 
     /// The estimated camera pose (the map offset not added) and its covariance.
@@ -344,7 +372,7 @@ impl InsFilter {
         posterior: &CameraPose,
         posterior_cov: &Matrix6<f64>,
     ) -> bool {
-        let h = Self::pose_rows();
+        let h = self.pose_rows();
         let (pred, m) = self.apparent_pose(q_imu_cam);
         let Some(m_inv) = m.cholesky().map(|c| c.inverse()) else { return false };
         let k = self.covariance * h.transpose() * m_inv;
@@ -386,6 +414,7 @@ impl InsFilter {
         s.gyro_bias_imu_rad_s += v(GYRO_BIAS);
         s.accel_bias_imu_m_s2 += v(ACCEL_BIAS);
         s.map_offset_ecef_m += v(MAP);
+        s.time_offset_s += dx[TIME];
     }
 
     /// Scales the uncertainty of position, velocity and attitude by `factor`
@@ -410,9 +439,10 @@ impl InsFilter {
         fix_cov: &Matrix6<f64>,
         velocity_sigma_m_s: f64,
     ) {
+        let at_stamp = perturb(fix, &-self.time_shift());
         let s = &mut self.state;
-        s.q_ecef_imu = fix.q_ecef_cam * q_imu_cam.inverse();
-        s.position = Ecef(fix.position.0 - s.map_offset_ecef_m);
+        s.q_ecef_imu = at_stamp.q_ecef_cam * q_imu_cam.inverse();
+        s.position = Ecef(at_stamp.position.0 - s.map_offset_ecef_m);
         let p = &mut self.covariance;
         for i in 0..6 {
             for j in 0..N {
@@ -478,6 +508,9 @@ mod tests {
         e: Matrix3<f64>,
         r: f64,
         omega: f64,
+        /// A roll wobble of this amplitude (rad) over a 4 s period (a
+        /// balloon's pendulum; 0: none).
+        wobble_rad: f64,
     }
 
     struct Truth {
@@ -490,7 +523,13 @@ mod tests {
     impl Turn {
         fn new() -> Self {
             let frame = LocalFrame::at(Geodetic::new(36.6, -118.3, 30_000.0));
-            Turn { centre: frame.origin_ecef().0, e: frame.r_ecef_enu(), r: 2000.0, omega: 0.1 }
+            Turn {
+                centre: frame.origin_ecef().0,
+                e: frame.r_ecef_enu(),
+                r: 2000.0,
+                omega: 0.1,
+                wobble_rad: 0.0,
+            }
         }
 
         fn at(&self, t: f64) -> Truth {
@@ -503,7 +542,11 @@ mod tests {
             let z = -e3.into_owned();
             let y = z.cross(&x);
             let m = Matrix3::from_columns(&[x, y, z]);
-            let q = UnitQuaternion::from_rotation_matrix(&nalgebra::Rotation3::from_matrix_unchecked(m));
+            let q = UnitQuaternion::from_rotation_matrix(&nalgebra::Rotation3::from_matrix_unchecked(m))
+                * UnitQuaternion::from_axis_angle(
+                    &Vector3::x_axis(),
+                    self.wobble_rad * (std::f64::consts::TAU * t / 4.0).sin(),
+                );
             Truth { p, v, a, q }
         }
 
@@ -554,6 +597,8 @@ mod tests {
                 gyro_bias_imu_rad_s: Vector3::zeros(),
                 accel_bias_imu_m_s2: Vector3::zeros(),
                 map_offset_ecef_m: Vector3::zeros(),
+                time_offset_s: 0.0,
+                rate_ecef_rad_s: Vector3::zeros(),
             }
         }
     }
@@ -577,6 +622,7 @@ mod tests {
             velocity_m_s: 1.0,
             gyro_bias_rad_s: 10f64.to_radians() / 3600.0,
             accel_bias_m_s2: 0.02,
+            time_offset_s: 0.0,
         }
     }
 
@@ -664,6 +710,41 @@ mod tests {
     }
 
     #[test]
+    fn the_time_offset_converges_on_a_known_offset() {
+        // Images exposed 5 ms after their stamp during the turn (200 m/s)
+        // with a 5-degree pendulum (up to 7.9 deg/s): each noisy fix (0.006
+        // deg, 5 m) is the pose 5 ms later. (In a steady turn the offset's
+        // constant rotation would pass for an attitude error.)
+        let turn = Turn { wobble_rad: 5f64.to_radians(), ..Turn::new() };
+        let (e, mut i) = (errors(), init());
+        i.time_offset_s = 0.01;
+        let (imu, _, _) = turn.imu(100.0, 31.0, Some((&e, &i, 7)));
+        let mut f = InsFilter::new(turn.state(0.0), &i, e);
+        let q_imu_cam = UnitQuaternion::identity();
+        let mut rng = Rng::new(8);
+        let mut draw = |sigma: f64| Vector3::new(rng.normal(), rng.normal(), rng.normal()) * sigma;
+        let r = Matrix6::from_diagonal(&Vector6::new(1e-8, 1e-8, 1e-8, 25.0, 25.0, 25.0));
+        let tau = 0.005;
+        for k in 1..=60 {
+            let t = 0.5 * k as f64;
+            f.propagate(t, &imu);
+            let truth = turn.at(t + tau);
+            let mut d = Vector6::zeros();
+            d.fixed_rows_mut::<3>(0).copy_from(&draw(1e-4));
+            d.fixed_rows_mut::<3>(3).copy_from(&draw(5.0));
+            let seen = perturb(&CameraPose::new(Ecef(truth.p), truth.q), &d);
+            f.update_with_pose(&q_imu_cam, &seen, &r).unwrap();
+        }
+        let (est, sigma) = f.time_offset();
+        println!("time offset {:.2} ms +- {:.2} ms (truth 5 ms)", est * 1e3, sigma * 1e3);
+        assert!(sigma < 1e-3, "{sigma}");
+        assert!((est - tau).abs() < 3.0 * sigma, "{est} {sigma}");
+        // The reported pose is the one at the stamp.
+        let err = (f.state.position.0 - turn.at(30.0).p).norm();
+        assert!(err < 10.0, "{err} m");
+    }
+
+    #[test]
     fn conditioning_on_a_pose_posterior_is_the_kalman_update() {
         // update_with_pose goes through condition_on_pose; check it against
         // the textbook update with H = [I6 0 ...] (map offset on), P random.
@@ -675,14 +756,16 @@ mod tests {
         let mut rng = Rng::new(3);
         let a = Covariance::from_fn(|_, _| rng.normal());
         let scale = Covariance::from_diagonal(&SMatrix::<f64, N, 1>::from_fn(|i, _| {
-            [1e-3, 10.0, 1.0, 1e-5, 0.01, 10.0][i / 3]
+            [1e-3, 10.0, 1.0, 1e-5, 0.01, 10.0, 0.01][i / 3]
         }));
         f.covariance = scale * (a * a.transpose() / N as f64 + Covariance::identity()) * scale;
+        f.state.rate_ecef_rad_s = Vector3::new(0.1, -0.05, 0.2);
+        f.state.time_offset_s = 0.003;
         let q_imu_cam = UnitQuaternion::identity();
         let (pred, _) = f.apparent_pose(&q_imu_cam);
         let y = Vector6::new(2e-4, -1e-4, 3e-4, 12.0, -7.0, 4.0);
         let r = Matrix6::from_diagonal(&Vector6::new(1e-7, 1e-7, 1e-7, 30.0, 30.0, 30.0));
-        let h = InsFilter::pose_rows();
+        let h = f.pose_rows();
         let p = f.covariance;
         let s = h * p * h.transpose() + r;
         let k = p * h.transpose() * s.try_inverse().unwrap();

@@ -70,6 +70,16 @@ pub struct RunReport {
     pub median_ms: f64,
     /// The camera's self-calibration at the end (`None`: off).
     pub calibration: Option<CalibrationReport>,
+    /// The camera-IMU time offset the inertial filter ends with (`None`:
+    /// no inertial filter): an image stamped `t` was exposed at `t + this`.
+    pub time_offset: Option<TimeOffsetReport>,
+}
+
+/// The inertial filter's camera-IMU time offset (ms).
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct TimeOffsetReport {
+    pub offset_ms: f64,
+    pub sigma_ms: f64,
 }
 
 /// The self-calibration's estimate at the end of a run.
@@ -110,6 +120,8 @@ impl CalibrationReport {
 pub struct RejectedCounts {
     pub few_inliers: usize,
     pub inlier_share: usize,
+    /// Inliers on a line or in a cluster.
+    pub spread: usize,
     pub height: usize,
     /// Image-only poses the inertial filter's gate refused.
     pub inconsistent: usize,
@@ -198,6 +210,7 @@ pub fn run_flight(
         match r.rejection {
             Some(Rejection::FewInliers { .. }) => rejected.few_inliers += 1,
             Some(Rejection::InlierShare { .. }) => rejected.inlier_share += 1,
+            Some(Rejection::Spread { .. }) => rejected.spread += 1,
             Some(Rejection::Height { .. }) => rejected.height += 1,
             Some(Rejection::Inconsistent { .. }) => rejected.inconsistent += 1,
             None => {}
@@ -215,6 +228,10 @@ pub fn run_flight(
         rejected,
         median_ms: ms.get(ms.len() / 2).copied().unwrap_or(0.0),
         calibration: nav.calibration().map(CalibrationReport::of),
+        time_offset: nav.inertial().map(|f| {
+            let (offset, sigma) = f.time_offset();
+            TimeOffsetReport { offset_ms: offset * 1e3, sigma_ms: sigma * 1e3 }
+        }),
     };
     Ok(RunOutput { records, matches, covariances, report })
 }

@@ -59,6 +59,15 @@ pub struct NavParams {
     /// when the guess is 10 km off) rather than the landmarks (15 of 18 to
     /// 200 of 210 on the realistic flights).
     pub min_inlier_share: f64,
+    /// Inliers must spread over the image: over at least this many cells of
+    /// `grid`, and with a spread (standard deviation along their narrowest
+    /// direction) of at least this share of the image's smaller side. A
+    /// line or a cluster of matches pins the pose in some directions only,
+    /// and is what a chance consensus of wrong matches on a local pattern
+    /// looks like. (Accepted fixes on the realistic and synthetic flights:
+    /// at least 8 cells and 0.09.)
+    pub min_inlier_cells: usize,
+    pub min_inlier_spread: f64,
     /// A fix whose height is farther than this from the predicted one (the
     /// last accepted fix carried by the vertical velocity), plus what the
     /// velocity's error allows since then, is rejected (m); see [`HeightGate`].
@@ -101,6 +110,9 @@ pub struct NavParams {
     /// landmarks in view, and its correlation time (s). 0: not modelled.
     pub map_sigma_m: f64,
     pub map_tau_s: f64,
+    /// Prior 1-sigma of the camera-IMU time offset (s) the inertial filter
+    /// estimates (an image stamped `t` exposed at `t + offset`); 0: none.
+    pub time_offset_sigma_s: f64,
     /// A frame whose image-only pose is farther than this from the inertial
     /// filter's prediction (chi-square, 6 degrees of freedom) is rejected as
     /// inconsistent, and the filter's pose and velocity uncertainty doubled.
@@ -127,6 +139,8 @@ impl Default for NavParams {
             horizon_step_px: 10.0,
             min_inliers: 8,
             min_inlier_share: 0.3,
+            min_inlier_cells: 4,
+            min_inlier_spread: 0.04,
             max_height_jump_m: 450.0,
             max_landmarks: 300,
             grid: (8, 6),
@@ -152,6 +166,7 @@ impl Default for NavParams {
             // leaves no flight's NEES above its 95% band; 10 m leaves two.
             map_sigma_m: 20.0,
             map_tau_s: 10.0,
+            time_offset_sigma_s: 0.01,
             // 99.9% of chi-square with 6 degrees of freedom.
             innovation_gate_chi2: 22.46,
             sun: None,
@@ -180,6 +195,9 @@ pub enum Rejection {
     FewInliers { inliers: usize },
     /// Inliers a smaller share of the matches than `min_inlier_share`.
     InlierShare { inliers: usize, matches: usize },
+    /// Inliers on a line or in a cluster (`min_inlier_cells`,
+    /// `min_inlier_spread`): the cells they cover and their spread (pixels).
+    Spread { cells: usize, spread_px: f64 },
     /// The height disagrees with the prediction by more than the gate allows.
     Height { off_m: f64, allowed_m: f64 },
     /// The image-only pose disagrees with the inertial filter's prediction.
@@ -371,6 +389,8 @@ impl<'a> Navigator<'a> {
                 gyro_bias_imu_rad_s: Vector3::zeros(),
                 accel_bias_imu_m_s2: Vector3::zeros(),
                 map_offset_ecef_m: Vector3::zeros(),
+                time_offset_s: 0.0,
+                rate_ecef_rad_s: Vector3::zeros(),
             };
             let deg_s = |d: f64| d.to_radians();
             InsFilter::new(
@@ -382,6 +402,7 @@ impl<'a> Navigator<'a> {
                     velocity_m_s: params.init_velocity_sigma_m_s,
                     gyro_bias_rad_s: deg_s(params.gyro_bias_deg_s),
                     accel_bias_m_s2: params.accel_bias_m_s2,
+                    time_offset_s: params.time_offset_sigma_s,
                 },
                 InsErrors {
                     gyro_arw_rad_sqrt_s: deg_s(params.gyro_arw_deg_sqrt_s),
@@ -643,6 +664,11 @@ impl<'a> Navigator<'a> {
         cov + calibration_cov
     }
 
+    /// The inertial filter (`None`: [`FilterMode::Fixes`]).
+    pub fn inertial(&self) -> Option<&InsFilter> {
+        self.ins.as_ref()
+    }
+
     /// The camera's self-calibration (`None`: camera.json trusted).
     pub fn calibration(&self) -> Option<&CalibrationFilter> {
         self.calibration.as_ref()
@@ -662,6 +688,8 @@ impl<'a> Navigator<'a> {
                     Some(Rejection::FewInliers { inliers: sol.inliers })
                 } else if (sol.inliers as f64) < self.params.min_inlier_share * sol.n_matches as f64 {
                     Some(Rejection::InlierShare { inliers: sol.inliers, matches: sol.n_matches })
+                } else if let Some(r) = self.spread_check(&sol) {
+                    Some(r)
                 } else if matches!(pred.filter, Carried::Attitude(_)) || self.last_fix.is_none() {
                     // With the inertial filter, the height gate checks the
                     // first fix against the initial guess; after it the
@@ -796,6 +824,15 @@ impl<'a> Navigator<'a> {
             bias.y.to_degrees() * 3600.0,
             bias.z.to_degrees() * 3600.0,
         );
+    }
+
+    /// `Some` when the solution's inliers lie on a line or in a cluster.
+    fn spread_check(&self, sol: &Solution) -> Option<Rejection> {
+        let px: Vec<Pixel> = sol.records.iter().filter(|r| r.inlier).map(|r| Pixel::new(r.u, r.v)).collect();
+        let (w, h) = (self.camera.width as f64, self.camera.height as f64);
+        let (cells, spread_px) = inlier_spread(&px, w, h, self.params.grid);
+        (cells < self.params.min_inlier_cells || spread_px < self.params.min_inlier_spread * w.min(h))
+            .then_some(Rejection::Spread { cells, spread_px })
     }
 
     /// The height gate at `t` ([`HeightGate`]).
@@ -1250,6 +1287,34 @@ impl Solution {
     }
 }
 
+/// How pixels spread over a `w` x `h` image: the cells of a `grid` (across,
+/// down) they cover, and their standard deviation along their narrowest
+/// direction (the square root of their covariance's smaller eigenvalue;
+/// pixels).
+pub fn inlier_spread(px: &[Pixel], w: f64, h: f64, grid: (usize, usize)) -> (usize, f64) {
+    if px.is_empty() {
+        return (0, 0.0);
+    }
+    let n = px.len() as f64;
+    let (mu, mv) = (px.iter().map(|p| p.u).sum::<f64>() / n, px.iter().map(|p| p.v).sum::<f64>() / n);
+    let (mut a, mut b, mut c) = (0.0, 0.0, 0.0);
+    for p in px {
+        let (du, dv) = (p.u - mu, p.v - mv);
+        a += du * du / n;
+        b += dv * dv / n;
+        c += du * dv / n;
+    }
+    let minor = 0.5 * (a + b) - (0.25 * (a - b) * (a - b) + c * c).sqrt();
+    let (gx, gy) = grid;
+    let mut seen = vec![false; gx * gy];
+    for p in px {
+        // `as usize` saturates: left of or above the image is cell 0.
+        let (cx, cy) = (((p.u / w) * gx as f64) as usize, ((p.v / h) * gy as f64) as usize);
+        seen[cy.min(gy - 1) * gx + cx.min(gx - 1)] = true;
+    }
+    (seen.iter().filter(|&&s| s).count(), minor.max(0.0).sqrt())
+}
+
 /// The inliers' pixels and landmarks (ECEF).
 fn inliers_of(sol: &Solution) -> (Vec<Pixel>, Vec<Vector3<f64>>) {
     sol.records
@@ -1301,6 +1366,30 @@ fn velocity_fit(fixes: &std::collections::VecDeque<(f64, Vector3<f64>)>) -> Opti
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn inliers_on_a_line_or_in_a_cluster_do_not_spread() {
+        let (w, h) = (640.0, 480.0);
+        // A 10 x 8 lattice over the whole image: every cell, a spread of
+        // about a third of the side (uniform: side / sqrt(12) = 0.29).
+        let lattice: Vec<Pixel> = (0..80)
+            .map(|i| Pixel::new(32.0 + 64.0 * (i % 10) as f64, 30.0 + 60.0 * (i / 10) as f64))
+            .collect();
+        let (cells, spread) = inlier_spread(&lattice, w, h, (8, 6));
+        assert_eq!(cells, 48);
+        assert!((spread - 60.0 * (63.0f64 / 12.0).sqrt()).abs() < 1e-6, "{spread}");
+        // A diagonal line crosses many cells but has no width.
+        let line: Vec<Pixel> = (0..50).map(|i| Pixel::new(12.0 * i as f64, 9.0 * i as f64)).collect();
+        let (cells, spread) = inlier_spread(&line, w, h, (8, 6));
+        assert!(cells >= 6 && spread < 1e-6, "{cells} {spread}");
+        // A cluster in one corner: one cell.
+        let cluster: Vec<Pixel> =
+            (0..30).map(|i| Pixel::new(5.0 + (i % 6) as f64 * 8.0, 5.0 + (i / 6) as f64 * 8.0)).collect();
+        let (cells, spread) = inlier_spread(&cluster, w, h, (8, 6));
+        assert_eq!(cells, 1);
+        assert!(spread < 0.04 * h, "{spread}");
+        assert_eq!(inlier_spread(&[], w, h, (8, 6)), (0, 0.0));
+    }
 
     #[test]
     fn lighting_is_the_nearest_baked_sun() {

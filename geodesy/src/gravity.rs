@@ -82,7 +82,10 @@ mod tests {
             assert!((v.norm() - want).abs() < 2e-4, "{g:?}: {} vs {want}", v.norm());
             let angle = (-v.normalize()).angle(&g.up_ecef());
             let deflection = 8.08e-9 * g.h_m * (2.0 * g.lat_rad()).sin().abs() / want;
-            assert!((angle - deflection).abs() < 1e-5, "{g:?}: {angle} rad from the normal, {deflection} expected");
+            assert!(
+                (angle - deflection).abs() < 1e-5,
+                "{g:?}: {angle} rad from the normal, {deflection} expected"
+            );
         }
     }
 

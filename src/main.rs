@@ -89,6 +89,11 @@ struct BuildArgs {
     spacing: Option<u32>,
     #[arg(long, default_value_t = 1)]
     per_cell: usize,
+    /// Density fill: where fewer than this share of the ~120 cells a camera
+    /// sees around a cell kept a landmark (water, bare ground), textured cells
+    /// keep up to 4x --per-cell; 0: off (default: 0.5 with --camera, else off).
+    #[arg(long)]
+    fill_share: Option<f32>,
     /// Number of levels (template footprint doubles per level); default: as
     /// many as the served camera resolutions need.
     #[arg(long)]
@@ -300,6 +305,11 @@ struct NavigateArgs {
     /// where the pose guess predicted each landmark blue with a line to the match.
     #[arg(long)]
     matches_dir: Option<PathBuf>,
+    /// Also write the inertial filter's pose at every IMU sample:
+    /// poses-imu.csv and covariance-imu.csv next to --out (poses.csv's and
+    /// covariance.csv's columns; between frames the status is `propagated`).
+    #[arg(long)]
+    imu_rate: bool,
     /// The sun during the flight, AZ,EL degrees: with a database built with
     /// several `--sun`s, the templates baked under the nearest are used
     /// (default: its first sun).
@@ -451,6 +461,7 @@ fn run_build(a: BuildArgs) -> anyhow::Result<()> {
     o.min_template_size = a.min_template_size;
     o.spacing_px = a.spacing;
     o.per_cell = a.per_cell;
+    o.fill_share = a.fill_share;
     o.levels = a.levels;
     o.base_gsd_m = a.base_gsd;
     // One-line errors (clap's own "required arguments" message spans lines).
@@ -708,7 +719,12 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
         max_frame_sigma_rel: a.calibration_frame_sigma / 100.0,
         ..Default::default()
     });
-    let opts = trn_navigator::RunOptions { rate_hz: a.rate, params, matches_dir: a.matches_dir.clone() };
+    let opts = trn_navigator::RunOptions {
+        rate_hz: a.rate,
+        params,
+        matches_dir: a.matches_dir.clone(),
+        imu_rate: a.imu_rate,
+    };
     let bar = indicatif::ProgressBar::new(flight.frames.len() as u64);
     bar.set_style(
         indicatif::ProgressStyle::with_template(
@@ -723,6 +739,19 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
     trn_flight::write_match_records(&matches_path, &run.matches)?;
     let cov_path = a.out.with_file_name("covariance.csv");
     trn_flight::write_pose_covariances(&cov_path, &run.covariances)?;
+    if a.imu_rate {
+        let (records, covariances): (Vec<_>, Vec<_>) = run.imu_rate.into_iter().unzip();
+        let (poses_imu, cov_imu) =
+            (a.out.with_file_name("poses-imu.csv"), a.out.with_file_name("covariance-imu.csv"));
+        trn_flight::write_nav_records(&poses_imu, &records)?;
+        trn_flight::write_pose_covariances(&cov_imu, &covariances)?;
+        tracing::info!(
+            "IMU rate: {} poses in {} and {}",
+            records.len(),
+            poses_imu.display(),
+            cov_imu.display()
+        );
+    }
     let report = run.report;
     tracing::info!(
         "{} of {} frames processed, {} fixes ({} rejected for too few inliers, {} for too small a share of inliers, {} for inliers on a line or in a cluster, {} for their height, {} as inconsistent with the inertial filter), median {:.1} ms per frame; wrote {}, {} and {}",

@@ -277,6 +277,8 @@ fn bad_output_folder_and_numeric_options() {
         ("--template-size", "4096"),
         ("--spacing", "1"),
         ("--per-cell", "0"),
+        ("--fill-share", "1.5"),
+        ("--fill-share", "nan"),
         ("--levels", "0"),
         ("--levels", "13"),
         ("--base-gsd", "0"),

@@ -457,8 +457,99 @@ fn ortho_mosaic_across_crs() {
     let gsd = ["--base-gsd", "2.4"];
     let reference = build_ell(d, "reference", &[&ortho], &[&dem], &gsd);
     let utm = Utm::new();
-    // West part in UTM, east part warped to lat/lon: they cannot share one VRT.
-    // Side by side (seam at column 400), then overlapping (columns 300..500 in both).
+    // West part in UTM, east part warped to lat/lon: the builder warps one onto
+    // the other's grid and reads them as one mosaic. Side by side (seam at
+    // column 400), then overlapping (columns 300..500 in both).
+    for (name, west_cols, east_cols) in
+        [("side-by-side", (0, 400), (400, 800)), ("overlapping", (0, 500), (300, 800))]
+    {
+        let west = d.join(format!("{name}-west.tif"));
+        let east_utm = d.join(format!("{name}-east-utm.tif"));
+        let east = d.join(format!("{name}-east-4326.tif"));
+        let win =
+            |(c0, c1): (usize, usize)| [c0.to_string(), "0".into(), (c1 - c0).to_string(), SIZE.to_string()];
+        let w = win(west_cols);
+        // RGBA like the warped east part: the same bands.
+        let alpha = ["-b", "1", "-b", "2", "-b", "3", "-b", "mask", "-co", "ALPHA=YES"];
+        translate(&ortho, &west, &[&["-srcwin", &w[0], &w[1], &w[2], &w[3]][..], &alpha[..]].concat());
+        let e = win(east_cols);
+        translate(&ortho, &east_utm, &["-srcwin", &e[0], &e[1], &e[2], &e[3]]);
+        warp(&east_utm, &east, &["-t_srs", "EPSG:4326", "-r", "bilinear", "-dstalpha"]);
+        std::fs::remove_file(&east_utm).unwrap();
+        let alone_w = build_ell(d, &format!("{name}-west-alone"), &[&west], &[&dem], &gsd);
+        let alone_e = build_ell(d, &format!("{name}-east-alone"), &[&east], &[&dem], &gsd);
+        let mosaic = build_ell(d, &format!("{name}-mosaic"), &[&west, &east], &[&dem], &gsd);
+        // One raster: the coarser file warped onto the finer one's grid.
+        let groups = mosaic.meta["sources"].as_array().map(|a| a.len()).unwrap_or(0);
+        let warped = mosaic.log.lines().find(|l| l.contains("warped onto the grid of")).unwrap_or_default();
+        assert!(groups == 1 && !warped.is_empty(), "{name}: {groups} source groups; log: {}", mosaic.log);
+        let host_is_west = warped.contains(&*west.to_string_lossy());
+        // The host's edge facing the other file: templates reach across it,
+        // as they would in a single file (no band lost along the seam).
+        let (x_w, x_e) = (EAST + west_cols.1 as f64 * GSD, EAST + east_cols.0 as f64 * GSD);
+        let (seam, host_alone, side) =
+            if host_is_west { (x_w, &alone_w, -1.0) } else { (x_e, &alone_e, 1.0) };
+        let over = straddling(&mosaic, seam, &utm).len();
+        let over_ref = straddling(&reference, seam, &utm).len();
+        eprintln!("{name}: {warped}; {over} templates over the seam (single file: {over_ref})");
+        assert!(
+            over_ref > 0 && over as f64 >= 0.5 * over_ref as f64,
+            "{name}: {over} templates over the seam, single file {over_ref}"
+        );
+        // Per level, the strip within one footprint of the seam holds about
+        // what the single file holds there (no gap, no duplicates).
+        let levels: std::collections::BTreeSet<u8> = reference.templates.iter().map(|t| t.level).collect();
+        for level in levels {
+            let strip = |b: &Built| {
+                b.templates
+                    .iter()
+                    .filter(|t| {
+                        t.level == level && (utm.centre(t).0 - seam).abs() < t.width_px as f64 * t.gsd_m
+                    })
+                    .count() as f64
+            };
+            let (m, r) = (strip(&mosaic), strip(&reference));
+            if r >= 6.0 {
+                assert!(
+                    (0.6..=1.4).contains(&(m / r)),
+                    "{name}: level {level}: {m} templates along the seam, single file {r}"
+                );
+            }
+        }
+        // Away from the seam, each side holds about what the single file holds
+        // there, and what its file alone holds (the cells are the mosaic's, so
+        // the templates themselves differ).
+        for (alone, sgn) in [(host_alone, side), (if host_is_west { &alone_e } else { &alone_w }, -side)] {
+            let far = |b: &Built| {
+                b.templates
+                    .iter()
+                    .filter(|t| sgn * (utm.centre(t).0 - seam) > 2.0 * t.width_px as f64 * t.gsd_m)
+                    .count() as f64
+            };
+            let (m, a, r) = (far(&mosaic), far(alone), far(&reference));
+            println!(
+                "{name}: side {sgn}: {m} templates away from the seam, {a} alone, {r} in the single file"
+            );
+            assert!(
+                r > 20.0 && (m - r).abs() <= 0.25 * r && (m - a).abs() <= 0.25 * a,
+                "{name}: {m} {a} {r}"
+            );
+        }
+        assert_similar_count(&mosaic, &reference);
+    }
+}
+
+#[test]
+fn ortho_groups_with_other_bands_are_deduplicated() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let (ortho, dem) = synth(d);
+    let gsd = ["--base-gsd", "2.4"];
+    let reference = build_ell(d, "reference", &[&ortho], &[&dem], &gsd);
+    let utm = Utm::new();
+    // West part in UTM (RGB), east part warped to lat/lon (RGBA): other bands,
+    // so they are built apart and streamed as one. Side by side (seam at
+    // column 400), then overlapping (columns 300..500 in both).
     for (name, west_cols, east_cols) in
         [("side-by-side", (0, 400), (400, 800)), ("overlapping", (0, 500), (300, 800))]
     {

@@ -65,7 +65,7 @@ fn navigates_a_simulated_flight_to_metres() {
     // with the landmark's ECEF position: the truth pose projects an inlier's
     // landmark where it was found.
     let text = std::fs::read_to_string(s.root().join("matches.csv")).unwrap();
-    assert!(text.starts_with("t,landmark,u,v,pred_u,pred_v,residual_px,inlier,x_m,y_m,z_m\n"));
+    assert!(text.starts_with("t,landmark,u,v,pred_u,pred_v,residual_px,inlier,x_m,y_m,z_m,sigma_px\n"));
     let matches = trn_flight::read_match_records(&s.root().join("matches.csv")).unwrap();
     assert!(matches.len() > 13 * 8);
     let flight = trn_flight::Flight::open(&s.flight).unwrap();
@@ -138,6 +138,68 @@ fn navigates_a_simulated_flight_to_metres() {
         // Inliers are drawn green.
         assert!(pic.pixels().any(|p| p.0 == [40, 220, 60]), "{name} has no inlier mark");
     }
+}
+
+#[test]
+fn imu_rate_poses_fill_the_gaps_between_frames() {
+    let s = nav_fixture();
+    let poses = s.root().join("imu-run.csv");
+    let o = navigate(&s, &poses, &["--imu-rate"]);
+    assert!(o.status.success(), "navigate failed: {}", stderr(&o));
+    let frames = trn_flight::read_nav_records(&poses).unwrap();
+    let rows = trn_flight::read_nav_records(&s.root().join("poses-imu.csv")).unwrap();
+    let flight = trn_flight::Flight::open(&s.flight).unwrap();
+    // Every IMU sample between the first and the last frame, and every frame
+    // (a sample at a frame's time is that frame's row).
+    let (t0, t1) = (frames[0].pose.t, frames[frames.len() - 1].pose.t);
+    let at_frame = |t: f64| frames.iter().any(|f| (f.pose.t - t).abs() < 1e-9);
+    let samples = flight.imu.iter().filter(|x| x.t > t0 && x.t < t1 && !at_frame(x.t)).count();
+    assert!(samples > 20 * frames.len(), "{samples} IMU samples for {} frames", frames.len());
+    assert_eq!(rows.len(), samples + frames.len());
+    assert!(rows.windows(2).all(|w| w[1].pose.t > w[0].pose.t), "IMU-rate rows out of order");
+    for f in &frames {
+        let r = rows.iter().find(|r| (r.pose.t - f.pose.t).abs() < 1e-9).expect("a row at each frame");
+        assert_eq!(r.status, f.status, "t {}", f.pose.t);
+    }
+    // Between frames the poses follow the truth (interpolated between its
+    // frame-time rows) as closely as at the frames.
+    let err = |r: &trn_flight::NavRecord| {
+        let truth = flight.truth_at(r.pose.t).unwrap();
+        (r.pose.position.to_ecef().0 - truth.position.to_ecef().0).norm()
+    };
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+    let between: Vec<f64> =
+        rows.iter().filter(|r| r.status == trn_flight::FixStatus::Propagated).map(err).collect();
+    let at_frames: Vec<f64> =
+        rows.iter().filter(|r| r.status == trn_flight::FixStatus::Fix).map(err).collect();
+    println!(
+        "IMU rate: mean error {:.2} m between frames, {:.2} m at fixes",
+        mean(&between),
+        mean(&at_frames)
+    );
+    assert!(mean(&between) < 2.0 * mean(&at_frames) + 1.0, "{} {}", mean(&between), mean(&at_frames));
+    // covariance-imu.csv: a row per pose; a fix shrinks the sigma.
+    let cov = std::fs::read_to_string(s.root().join("covariance-imu.csv")).unwrap();
+    let sd: Vec<(f64, f64)> = cov
+        .lines()
+        .skip(1)
+        .map(|l| {
+            let v: Vec<f64> = l.split(',').map(|x| x.parse().unwrap()).collect();
+            (v[0], (v[1] * v[1] + v[2] * v[2] + v[3] * v[3]).sqrt())
+        })
+        .collect();
+    assert_eq!(sd.len(), rows.len());
+    assert!(sd.iter().all(|s| s.1.is_finite() && s.1 > 0.0));
+    let mut shrunk = 0;
+    for (k, r) in rows.iter().enumerate().skip(1) {
+        if r.status == trn_flight::FixStatus::Fix && rows[k - 1].status == trn_flight::FixStatus::Propagated {
+            shrunk += usize::from(sd[k].1 < sd[k - 1].1);
+        }
+    }
+    assert!(shrunk >= frames.len() / 2, "{shrunk} fixes shrank the sigma");
+    // Only the inertial filter has poses between frames.
+    let o = navigate(&s, &s.root().join("fixes.csv"), &["--imu-rate", "--filter", "fixes"]);
+    assert!(!o.status.success() && stderr(&o).contains("--imu-rate"), "{}", stderr(&o));
 }
 
 #[test]

@@ -38,7 +38,7 @@ pub use error::{BuildError, Result};
 use extract::{ExtractParams, Reject, WindowGeo};
 use lighting::SunGrid;
 use pyramid::{LevelFile, OrthoReader, Window};
-use select::{CellStats, Core, LumWindow, SelectParams};
+use select::{CellStats, Core, Fill, LumWindow, SelectParams};
 use sizing::{GsdRange, LevelSpec, Mission};
 use source::{Luminance, RasterInfo, VerticalDatum};
 use terrain::{DemSampler, DemSpec};
@@ -76,6 +76,13 @@ pub struct BuildOptions {
     /// mission; with one, what gives its camera enough landmarks in view).
     pub spacing_px: Option<u32>,
     pub per_cell: usize,
+    /// Density fill (`--fill-share`): where fewer than this share of the
+    /// cells a camera sees around a cell kept a landmark (water, bare ground,
+    /// the scene's edge), its textured cells keep up to 4 times `per_cell`
+    /// ([`select::Fill`]); 0: off; `None`: [`sizing::USABLE_SHARE`] for a
+    /// mission (its cells are sized for it), off for the default envelope
+    /// (whose cameras see several times the landmarks they need).
+    pub fill_share: Option<f32>,
     /// Number of levels; `None`: as many as the served camera resolutions need.
     pub levels: Option<u8>,
     /// GSD of the finest pyramid step; `None`: the coarsest ortho's pixel size.
@@ -105,6 +112,9 @@ pub struct BuildOptions {
     pub max_shading_share: Option<f64>,
 }
 
+/// Most a cell's quota grows under the density fill ([`BuildOptions::fill_share`]).
+pub const FILL_MAX_BOOST: usize = 4;
+
 /// View angle from the vertical up to which a database built without a
 /// mission keeps landmarks visible (self-occlusion test).
 pub const DEFAULT_MAX_VIEW_DEG: f64 = 60.0;
@@ -122,6 +132,7 @@ impl BuildOptions {
             min_template_size: 12,
             spacing_px: None,
             per_cell: 1,
+            fill_share: None,
             levels: None,
             base_gsd_m: None,
             mission: None,
@@ -142,6 +153,12 @@ impl BuildOptions {
     /// default cell is `share` of its footprint ([`sizing::spacing_shares`]).
     pub fn spacing(&self, size_px: u32, share: f64) -> u32 {
         self.spacing_px.unwrap_or(((size_px as f64 * share).round() as u32).max(1))
+    }
+
+    /// The density fill's share ([`BuildOptions::fill_share`]).
+    pub fn fill_share(&self) -> f32 {
+        let auto = if self.mission.is_some() { sizing::USABLE_SHARE as f32 } else { 0.0 };
+        self.fill_share.unwrap_or(auto)
     }
 
     /// Camera resolutions the database is sized for.
@@ -181,6 +198,9 @@ impl BuildOptions {
         }
         if self.per_cell == 0 {
             return bad("--per-cell", "must be at least 1");
+        }
+        if self.fill_share.is_some_and(|f| !(f.is_finite() && (0.0..=1.0).contains(&f))) {
+            return bad("--fill-share", "must be a share in 0..=1");
         }
         if matches!(self.levels, Some(0) | Some(13..)) {
             return bad("--levels", "must be 1..=12");
@@ -809,28 +829,75 @@ fn group_orthos(infos: Vec<(RasterInfo, Luminance)>, work: &Path) -> Result<Vec<
             None => buckets.push(vec![(info, lum)]),
         }
     }
+    // Buckets with the same bands in other CRSs or pixel sizes join the
+    // finest one's mosaic, warped onto its grid: one raster, no seam.
+    let mut order: Vec<usize> = (0..buckets.len()).collect();
+    order.sort_by(|&a, &b| {
+        let area = |k: usize| buckets[k][0].0.pixel_dx_m * buckets[k][0].0.pixel_dy_m;
+        area(a).total_cmp(&area(b))
+    });
+    let joins = |host: &(RasterInfo, Luminance), o: &(RasterInfo, Luminance)| {
+        host.0.to_crs.gt[2] == 0.0
+            && host.0.to_crs.gt[4] == 0.0
+            && o.0.band_count == host.0.band_count
+            && o.0.band_type == host.0.band_type
+            && o.1.bands == host.1.bands
+            && o.1.alpha_band == host.1.alpha_band
+    };
+    // (host bucket, buckets warped onto it), hosts in input order.
+    let mut mosaics: Vec<(usize, Vec<usize>)> = Vec::new();
+    for &k in &order {
+        match mosaics.iter_mut().find(|(h, _)| joins(&buckets[*h][0], &buckets[k][0])) {
+            Some((_, warped)) => warped.push(k),
+            None => mosaics.push((k, Vec::new())),
+        }
+    }
+    mosaics.sort_by_key(|m| m.0);
     let mut groups = Vec::new();
-    for (i, b) in buckets.into_iter().enumerate() {
+    for (i, (host, warped)) in mosaics.into_iter().enumerate() {
+        let host_info = buckets[host][0].0.clone();
+        let mut sources: Vec<PathBuf> = Vec::new();
+        for &k in &warped {
+            let vrt = work.join(format!("ortho-warp-{i}-{k}.vrt"));
+            let infos: Vec<RasterInfo> = buckets[k].iter().map(|x| x.0.clone()).collect();
+            source::warp_onto_grid(&infos, &host_info, &vrt)?;
+            sources.push(vrt);
+        }
+        let b: Vec<&(RasterInfo, Luminance)> =
+            buckets[host].iter().chain(warped.iter().flat_map(|&k| buckets[k].iter())).collect();
+        // Warped sources first: the host's own pixels lie on top where they overlap.
+        sources.extend(buckets[host].iter().map(|x| x.0.path.clone()));
         let files: Vec<PathBuf> = b.iter().map(|x| x.0.path.clone()).collect();
-        let (path, info) = if b.len() == 1 {
-            (b[0].0.path.clone(), b[0].0.clone())
+        let (path, info) = if sources.len() == 1 {
+            (host_info.path.clone(), host_info)
         } else {
             // One VRT per mosaic: templates may straddle file seams.
             let vrt = work.join(format!("ortho-mosaic-{i}.vrt"));
-            let dss = files.iter().map(|p| source::open(p)).collect::<Result<Vec<_>>>()?;
+            let dss = sources.iter().map(|p| source::open(p)).collect::<Result<Vec<_>>>()?;
             gdal::programs::raster::build_vrt(Some(&vrt), &dss, None).map_err(|e| BuildError::Read {
                 path: files[0].clone(),
                 reason: format!("cannot mosaic: {e}"),
             })?;
             let (_, info) = source::inspect(&vrt)?;
-            info!("mosaic of {} orthos: {}x{} px", files.len(), info.width, info.height);
+            if warped.is_empty() {
+                info!("mosaic of {} orthos: {}x{} px", files.len(), info.width, info.height);
+            } else {
+                info!(
+                    "mosaic of {} orthos, {} of them warped onto the grid of {}: {}x{} px",
+                    files.len(),
+                    files.len() - buckets[host].len(),
+                    host_info.path.display(),
+                    info.width,
+                    info.height
+                );
+            }
             (vrt, info)
         };
         // One grey-level stretch for the whole mosaic: the union of its files' ranges.
         let (lo, hi) = b.iter().fold((f32::MAX, f32::MIN), |(lo, hi), (_, l)| {
             (lo.min(l.offset), hi.max(l.offset + 255.0 / l.scale))
         });
-        let lum = Luminance { offset: lo, scale: 255.0 / (hi - lo), ..b[0].1.clone() };
+        let lum = Luminance { offset: lo, scale: 255.0 / (hi - lo), ..buckets[host][0].1.clone() };
         groups.push(OrthoGroup { index: i as u32, path, info, lum, files });
     }
     Ok(groups)
@@ -930,6 +997,12 @@ fn build_group(
                         cell_w: (sp / px_w).round().max(2.0) as usize,
                         cell_h: (sp / px_h).round().max(2.0) as usize,
                         per_cell: opts.per_cell,
+                        fill: (opts.fill_share() > 0.0).then_some(Fill {
+                            share: opts.fill_share(),
+                            window_w: sizing::VIEW_CELLS.0,
+                            window_h: sizing::VIEW_CELLS.1,
+                            max_boost: FILL_MAX_BOOST,
+                        }),
                         min_shi_tomasi: opts.min_shi_tomasi,
                         min_contrast_std: opts.min_contrast_std,
                         max_saturated: opts.max_saturated,

@@ -19,6 +19,8 @@ pub struct SelectParams {
     pub cell_w: usize,
     pub cell_h: usize,
     pub per_cell: usize,
+    /// Where landmarks are sparse (water, bare ground), textured cells keep more.
+    pub fill: Option<Fill>,
     /// Minimum Shi-Tomasi strength (grey levels^2 per pixel^2).
     pub min_shi_tomasi: f32,
     /// Minimum standard deviation of the template's grey levels.
@@ -28,6 +30,30 @@ pub struct SelectParams {
     /// Uniqueness search radius (window pixels) and the highest second peak accepted.
     pub search_radius: usize,
     pub max_second_peak: f32,
+}
+
+/// Density fill: a camera's view holds about `window_w x window_h` cells; where
+/// fewer than `share` of the cells of that window around a cell kept a
+/// landmark (water, bare ground, nodata), the cell's quota grows to
+/// `per_cell * share / kept_share` (rounded up, at most `max_boost *
+/// per_cell`), so the view still holds about `share` landmarks per cell.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Fill {
+    pub share: f32,
+    pub window_w: usize,
+    pub window_h: usize,
+    pub max_boost: usize,
+}
+
+impl Fill {
+    /// A cell's quota where `kept` of the cells around it kept a landmark.
+    pub fn quota(&self, per_cell: usize, kept: f32) -> usize {
+        if kept >= self.share {
+            return per_cell;
+        }
+        let boost = (self.share / kept.max(1e-3)).ceil() as usize;
+        per_cell * boost.clamp(1, self.max_boost)
+    }
 }
 
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -161,6 +187,19 @@ pub struct Scratch {
     coarse_sums: WindowSums,
     cells: Vec<Vec<(f32, f32, usize, usize)>>,
     cell_usable: Vec<bool>,
+    /// Per cell: where its walk down the candidates stopped.
+    cell_walk: Vec<CellWalk>,
+    /// Per cell: the positions taken.
+    cell_taken: Vec<Vec<(usize, usize)>>,
+    kept_prefix: Vec<u32>,
+}
+
+/// How far a cell's walk down its sorted candidates went.
+#[derive(Clone, Copy, Debug, Default)]
+struct CellWalk {
+    next: usize,
+    tried: usize,
+    unique: usize,
 }
 
 fn measures_into(img: &LumWindow, p: &SelectParams, sc: &mut Scratch) {
@@ -589,7 +628,18 @@ pub fn select_with(
     let (hw, hh) = half_resolution_into(img, &mut sc.half);
     // Entries already there are ones too.
     sc.valid_half.resize(hw * hh, 1);
-    let Scratch { m, half, valid_half, coarse_sums, cells, cell_usable, .. } = sc;
+    let Scratch {
+        m,
+        half,
+        valid_half,
+        coarse_sums,
+        cells,
+        cell_usable,
+        cell_walk,
+        cell_taken,
+        kept_prefix,
+        ..
+    } = sc;
     let coarse_img = LumWindow { width: hw, height: hh, lum: half, valid: &valid_half[..hw * hh] };
     coarse_sums.compute(&coarse_img);
     let coarse_p = SelectParams {
@@ -622,45 +672,98 @@ pub fn select_with(
             }
         }
     }
-    let mut stats = CellStats::default();
     let min_sep = (p.win_w.min(p.win_h) / 2).max(1);
-    for (cell, &usable) in cells[..cells_x * cells_y].iter_mut().zip(cell_usable.iter()) {
-        stats.covered += usize::from(usable);
-        if cell.is_empty() {
-            stats.no_texture += usize::from(usable);
-            continue;
-        }
+    let n_cells = cells_x * cells_y;
+    let max_quota = p.per_cell * p.fill.map_or(1, |f| f.max_boost.max(1));
+    for cell in cells[..n_cells].iter_mut() {
         // Only the strongest few are ever tried: a partial sort is enough.
-        let keep = 32 * p.per_cell;
+        let keep = 32 * max_quota;
         if cell.len() > keep {
             cell.select_nth_unstable_by(keep, |a, b| b.0.total_cmp(&a.0));
             cell.truncate(keep);
         }
         cell.sort_unstable_by(|a, b| b.0.total_cmp(&a.0));
-        let mut taken: Vec<(usize, usize)> = Vec::new();
-        let (mut tried, mut unique) = (0, 0);
-        for &(st, contrast_std, x, y) in cell.iter() {
-            if taken.len() >= p.per_cell || tried >= TRIES_PER_LANDMARK * p.per_cell {
+    }
+    cell_walk.clear();
+    cell_walk.resize(n_cells, CellWalk::default());
+    cell_taken.iter_mut().for_each(Vec::clear);
+    cell_taken.resize_with(n_cells, Vec::new);
+    let cells = &cells[..n_cells];
+    let (walks, taken) = (cell_walk, cell_taken);
+    // Walks cell `c` down its candidates until it holds `quota` landmarks or
+    // has tried TRIES_PER_LANDMARK per landmark of the quota.
+    let walk = |cell: &[(f32, f32, usize, usize)],
+                w: &mut CellWalk,
+                t: &mut Vec<(usize, usize)>,
+                quota: usize,
+                accept: &mut dyn FnMut(&Candidate) -> bool| {
+        while let Some(&(st, contrast_std, x, y)) = cell.get(w.next) {
+            if t.len() >= quota || w.tried >= TRIES_PER_LANDMARK * quota {
                 break;
             }
-            if taken.iter().any(|&(tx, ty)| tx.abs_diff(x).max(ty.abs_diff(y)) < min_sep) {
+            w.next += 1;
+            if t.iter().any(|&(tx, ty)| tx.abs_diff(x).max(ty.abs_diff(y)) < min_sep) {
                 continue;
             }
-            tried += 1;
+            w.tried += 1;
             // Uniqueness is judged at half resolution: a sixteenth of the work, and
             // low-passing tends to raise a competing peak rather than hide it.
             let sp = second_peak(&coarse_img, coarse_sums, x / 2, y / 2, &coarse_p);
             if sp > p.max_second_peak {
                 continue;
             }
-            unique += 1;
+            w.unique += 1;
             if accept(&Candidate { x, y, shi_tomasi: st, contrast_std, second_peak_ncc: sp }) {
-                taken.push((x, y));
+                t.push((x, y));
             }
         }
-        stats.taken += taken.len();
-        if taken.is_empty() {
-            if unique == 0 {
+    };
+    for c in 0..n_cells {
+        walk(&cells[c], &mut walks[c], &mut taken[c], p.per_cell, accept);
+    }
+    if let Some(fill) = p.fill {
+        // Share of the cells in a view-sized window around each cell that kept a
+        // landmark (windows clipped at the tile's edge), from a summed-area table.
+        let prefix = kept_prefix;
+        prefix.clear();
+        prefix.resize((cells_x + 1) * (cells_y + 1), 0);
+        for cy in 0..cells_y {
+            for cx in 0..cells_x {
+                let kept = u32::from(!taken[cy * cells_x + cx].is_empty());
+                let i = (cy + 1) * (cells_x + 1) + cx + 1;
+                prefix[i] = kept + prefix[i - 1] + prefix[i - cells_x - 1] - prefix[i - cells_x - 2];
+            }
+        }
+        let (hx, hy) = (fill.window_w / 2, fill.window_h / 2);
+        let quotas: Vec<usize> = (0..n_cells)
+            .map(|c| {
+                if taken[c].is_empty() || walks[c].next >= cells[c].len() {
+                    return p.per_cell;
+                }
+                let (cx, cy) = (c % cells_x, c / cells_x);
+                let (x0, x1) = (cx.saturating_sub(hx), (cx + hx + 1).min(cells_x));
+                let (y0, y1) = (cy.saturating_sub(hy), (cy + hy + 1).min(cells_y));
+                let at = |x: usize, y: usize| prefix[y * (cells_x + 1) + x];
+                let kept = at(x1, y1) + at(x0, y0) - at(x0, y1) - at(x1, y0);
+                fill.quota(p.per_cell, kept as f32 / ((x1 - x0) * (y1 - y0)) as f32)
+            })
+            .collect();
+        for (c, &q) in quotas.iter().enumerate() {
+            if q > p.per_cell {
+                walk(&cells[c], &mut walks[c], &mut taken[c], q, accept);
+            }
+        }
+    }
+    let mut stats = CellStats::default();
+    for ((c, cell), &usable) in cells.iter().enumerate().zip(cell_usable.iter()) {
+        stats.covered += usize::from(usable);
+        if cell.is_empty() {
+            stats.no_texture += usize::from(usable);
+            continue;
+        }
+        stats.taken += taken[c].len();
+        if taken[c].is_empty() {
+            if walks[c].unique == 0 {
                 stats.not_unique += 1;
             } else {
                 stats.refused += 1;
@@ -758,6 +861,7 @@ mod tests {
             cell_w: 30,
             cell_h: 30,
             per_cell: 1,
+            fill: None,
             min_shi_tomasi: 1.0,
             min_contrast_std: 4.0,
             max_saturated: 0.1,
@@ -870,5 +974,57 @@ mod tests {
         assert!(select(&img, &params(), Core { x0: 0, x1: w, y0: 0, y1: h }).is_empty());
         let sp = second_peak(&img, &WindowSums::new(&img), 30, 30, &params());
         assert!(sp > 0.999);
+    }
+
+    #[test]
+    fn fill_quota_grows_as_the_kept_share_falls() {
+        let f = Fill { share: 0.5, window_w: 13, window_h: 9, max_boost: 4 };
+        assert_eq!(f.quota(1, 0.6), 1);
+        assert_eq!(f.quota(1, 0.5), 1);
+        assert_eq!(f.quota(1, 0.3), 2);
+        assert_eq!(f.quota(2, 0.2), 6);
+        assert_eq!(f.quota(1, 0.1), 4);
+        assert_eq!(f.quota(1, 0.0), 4);
+    }
+
+    #[test]
+    fn fill_adds_landmarks_beside_water_only() {
+        // 13 x 9 cells of 30 px; texture in the two left columns of cells, water
+        // (flat) elsewhere: 2 of the 7-8 columns a window sees keep a landmark.
+        let (w, h) = (390, 270);
+        let textured = noise(w, h, 11);
+        let lum: Vec<f32> = (0..w * h).map(|i| if i % w < 60 { textured[i] } else { 100.0 }).collect();
+        let valid = vec![1u8; w * h];
+        let img = LumWindow { width: w, height: h, lum: &lum, valid: &valid };
+        let core = Core { x0: 0, x1: w, y0: 0, y1: h };
+        let fill = Fill { share: 0.5, window_w: 13, window_h: 9, max_boost: 4 };
+        let plain = select(&img, &params(), core);
+        let filled = select(&img, &SelectParams { fill: Some(fill), ..params() }, core);
+        let per_cell = |c: &[Candidate]| {
+            let mut n = [0usize; 13 * 9];
+            for k in c {
+                assert!(k.x < 60 + 7, "candidate on the water: {k:?}");
+                n[(k.y / 30) * 13 + k.x / 30] += 1;
+            }
+            n
+        };
+        let (np, nf) = (per_cell(&plain), per_cell(&filled));
+        assert!(np.iter().all(|&n| n <= 1));
+        // Every textured cell sees a kept share of 2/7 to 3/8: a quota of 2.
+        assert!(nf.iter().all(|&n| n <= 2), "{nf:?}");
+        assert!(filled.len() >= plain.len() + 12, "{} vs {}", filled.len(), plain.len());
+        // The plain pass is kept as it was: the fill only adds.
+        assert!(plain.iter().all(|k| filled.contains(k)));
+        for a in &filled {
+            for b in &filled {
+                if a != b && (a.x / 30, a.y / 30) == (b.x / 30, b.y / 30) {
+                    assert!(a.x.abs_diff(b.x).max(a.y.abs_diff(b.y)) >= 7, "{a:?} {b:?}");
+                }
+            }
+        }
+        // Texture everywhere: every window keeps its share, nothing is added.
+        let img = LumWindow { width: w, height: h, lum: &textured, valid: &valid };
+        let plain = select(&img, &params(), core);
+        assert_eq!(select(&img, &SelectParams { fill: Some(fill), ..params() }, core), plain);
     }
 }

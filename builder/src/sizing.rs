@@ -92,6 +92,13 @@ pub struct Mission {
 /// landmark over real scenes with water and bare ground: 60 in view).
 pub const CELLS_IN_VIEW: f64 = 120.0;
 
+/// The share of cells assumed to hold a usable landmark; where fewer do
+/// (water), the builder's density fill keeps more in the textured ones.
+pub const USABLE_SHARE: f64 = 0.5;
+
+/// [`CELLS_IN_VIEW`] cells as a 4:3 window (columns, rows): 13 x 9 = 117.
+pub const VIEW_CELLS: (usize, usize) = (13, 9);
+
 /// Largest view angle from the vertical at which the navigator uses a
 /// landmark (its default incidence limit).
 pub const MAX_VIEW_DEG: f64 = 75.0;

@@ -205,6 +205,103 @@ pub fn inspect(path: &Path) -> Result<(Dataset, RasterInfo)> {
     Ok((ds, info))
 }
 
+/// Writes `out`: a GDAL warped VRT of `srcs` (rasters in one CRS) on the
+/// pixel grid of `onto`: its CRS, pixel size and grid lines, over the
+/// sources' outline in that CRS snapped outward to the grid, bilinear. Alpha
+/// bands and nodata values carry over; a source with neither gets nodata 0
+/// outside its footprint. Nothing is read until the VRT is.
+pub fn warp_onto_grid(srcs: &[RasterInfo], onto: &RasterInfo, out: &Path) -> Result<()> {
+    let g = onto.to_crs.gt;
+    let first = &srcs[0].path;
+    let bad = |reason: String| BuildError::Read { path: first.clone(), reason };
+    // Geotransforms are in x = easting/longitude order whatever the CRS's axes.
+    let gis = |wkt: &str, path: &Path| {
+        let mut srs =
+            SpatialRef::from_wkt(wkt).map_err(|e| bad(format!("CRS of {}: {e}", path.display())))?;
+        srs.set_axis_mapping_strategy(AxisMappingStrategy::TraditionalGisOrder);
+        Ok::<_, BuildError>(srs)
+    };
+    let to = gis(&onto.srs_wkt, &onto.path)?;
+    let (mut xmin, mut ymin, mut xmax, mut ymax) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
+    for s in srcs {
+        let from = gis(&s.srs_wkt, &s.path)?;
+        let t = CoordTransform::new(&from, &to).map_err(|e| bad(format!("cannot reproject: {e}")))?;
+        let (x0, y0) = s.to_crs.apply(0.0, 0.0);
+        let (x1, y1) = s.to_crs.apply(s.width as f64, s.height as f64);
+        let b = t
+            .transform_bounds(&[x0.min(x1), y0.min(y1), x0.max(x1), y0.max(y1)], 21)
+            .map_err(|e| bad(format!("cannot reproject the outline: {e}")))?;
+        (xmin, ymin, xmax, ymax) = (xmin.min(b[0]), ymin.min(b[1]), xmax.max(b[2]), ymax.max(b[3]));
+    }
+    // Snapped outward to `onto`'s grid lines (no rotation: checked by the caller).
+    let (c0, c1) = (((xmin - g[0]) / g[1]).floor(), ((xmax - g[0]) / g[1]).ceil());
+    let (r0, r1) = if g[5] < 0.0 {
+        (((ymax - g[3]) / g[5]).floor(), ((ymin - g[3]) / g[5]).ceil())
+    } else {
+        (((ymin - g[3]) / g[5]).floor(), ((ymax - g[3]) / g[5]).ceil())
+    };
+    let (ex0, ex1) = (g[0] + c0 * g[1], g[0] + c1 * g[1]);
+    let (ey0, ey1) = (g[3] + r0 * g[5], g[3] + r1 * g[5]);
+    let dss = srcs.iter().map(|s| open(&s.path)).collect::<Result<Vec<_>>>()?;
+    let band = dss[0].rasterband(1).map_err(|e| bad(gdal_reason(&e, first)))?;
+    let masked = band.no_data_value().is_some()
+        || (1..=dss[0].raster_count()).any(|b| {
+            dss[0]
+                .rasterband(b)
+                .is_ok_and(|x| x.color_interpretation() == gdal::raster::ColorInterpretation::AlphaBand)
+        });
+    let mut args: Vec<String> = vec!["-of".into(), "VRT".into(), "-t_srs".into(), onto.srs_wkt.clone()];
+    args.push("-te".into());
+    args.extend([ex0.min(ex1), ey0.min(ey1), ex0.max(ex1), ey0.max(ey1)].map(|v| format!("{v:.9}")));
+    args.push("-tr".into());
+    args.extend([g[1].abs(), g[5].abs()].map(|v| format!("{v:.12}")));
+    args.extend(["-r", "bilinear"].map(String::from));
+    if !masked {
+        args.extend(["-dstnodata", "0"].map(String::from));
+    }
+    let c_args: Vec<std::ffi::CString> = args
+        .iter()
+        .map(|a| std::ffi::CString::new(a.as_str()).map_err(|_| bad("a CRS with a NUL byte".into())))
+        .collect::<Result<_>>()?;
+    let mut argv: Vec<*mut std::ffi::c_char> = c_args.iter().map(|a| a.as_ptr() as *mut _).collect();
+    argv.push(std::ptr::null_mut());
+    let dest = std::ffi::CString::new(out.to_string_lossy().as_bytes())
+        .map_err(|_| bad("a path with a NUL byte".into()))?;
+    let mut handles: Vec<gdal_sys::GDALDatasetH> = dss.iter().map(|d| d.c_dataset()).collect();
+    // SAFETY: argv is a NULL-terminated list of C strings that outlive the
+    // call (GDAL copies them); the handles are open datasets kept alive by
+    // `dss`; the returned dataset is closed here and its options freed.
+    let ok = quietly(|| unsafe {
+        let opts = gdal_sys::GDALWarpAppOptionsNew(argv.as_mut_ptr(), std::ptr::null_mut());
+        if opts.is_null() {
+            return false;
+        }
+        let mut usage = 0;
+        let ds = gdal_sys::GDALWarp(
+            dest.as_ptr(),
+            std::ptr::null_mut(),
+            handles.len() as std::ffi::c_int,
+            handles.as_mut_ptr(),
+            opts,
+            &mut usage,
+        );
+        gdal_sys::GDALWarpAppOptionsFree(opts);
+        if ds.is_null() {
+            return false;
+        }
+        gdal_sys::GDALClose(ds);
+        true
+    });
+    if !ok {
+        // SAFETY: reads this thread's last GDAL error message.
+        let msg = unsafe { std::ffi::CStr::from_ptr(gdal_sys::CPLGetLastErrorMsg()) }
+            .to_string_lossy()
+            .into_owned();
+        return Err(bad(format!("cannot reproject onto {}: {msg}", onto.path.display())));
+    }
+    Ok(())
+}
+
 /// Rasters up to this many pixels have band 1 read in full by
 /// [`check_not_all_nodata`]; larger ones are read decimated (from overviews
 /// when the file has them).

@@ -691,14 +691,18 @@ pub struct MatchRecord {
     /// The landmark's 3D position (ECEF), so a filter or smoother can use the
     /// matches without the database (columns `x_m,y_m,z_m`, empty if unknown).
     pub landmark_ecef: Option<Ecef>,
+    /// 1-sigma of where correlation found the landmark (px), from the NCC
+    /// peak's height and curvature (column `sigma_px`, empty if unknown).
+    pub sigma_px: Option<f64>,
 }
 
-pub const MATCHES_HEADER: &str = "t,landmark,u,v,pred_u,pred_v,residual_px,inlier,x_m,y_m,z_m";
+pub const MATCHES_HEADER: &str = "t,landmark,u,v,pred_u,pred_v,residual_px,inlier,x_m,y_m,z_m,sigma_px";
 
 pub fn match_record_line(m: &MatchRecord) -> String {
     let xyz = m.landmark_ecef.map_or(",,".to_string(), |p| format!("{:.3},{:.3},{:.3}", p.0.x, p.0.y, p.0.z));
+    let sigma = m.sigma_px.map_or(String::new(), |s| format!("{s:.4}"));
     format!(
-        "{:.6},{},{:.3},{:.3},{:.3},{:.3},{:.4},{},{xyz}",
+        "{:.6},{},{:.3},{:.3},{:.3},{:.3},{:.4},{},{xyz},{sigma}",
         m.t, m.landmark, m.u, m.v, m.pred_u, m.pred_v, m.residual_px, m.inlier as u8
     )
 }
@@ -716,6 +720,7 @@ pub fn read_match_records(path: &Path) -> Result<Vec<MatchRecord>> {
         .collect::<Result<_>>()?;
     // Files written before the landmark columns have none.
     let xyz: Option<Vec<usize>> = ["x_m", "y_m", "z_m"].iter().map(|n| tab.optional_column(n)).collect();
+    let sigma_col = tab.optional_column("sigma_px");
     let mut out = Vec::with_capacity(tab.rows.len());
     for (line, rec) in &tab.rows {
         let n = |k: usize| tab.number(*line, rec, c[k]);
@@ -759,6 +764,10 @@ pub fn read_match_records(path: &Path) -> Result<Vec<MatchRecord>> {
             residual_px: n(6)?,
             inlier,
             landmark_ecef,
+            sigma_px: match sigma_col {
+                Some(k) => tab.optional_number(*line, rec, k)?,
+                None => None,
+            },
         });
     }
     Ok(out)
@@ -862,7 +871,7 @@ mod tests {
     #[test]
     fn matches_round_trip_with_and_without_landmark_positions() {
         let dir = tempfile::tempdir().unwrap();
-        let m = |landmark_ecef| MatchRecord {
+        let m = |landmark_ecef, sigma_px| MatchRecord {
             t: 0.25,
             landmark: 7,
             u: 10.5,
@@ -872,8 +881,9 @@ mod tests {
             residual_px: 0.559,
             inlier: true,
             landmark_ecef,
+            sigma_px,
         };
-        let rows = [m(Some(Ecef::new(-1284512.125, -4716392.5, 4079688.0))), m(None)];
+        let rows = [m(Some(Ecef::new(-1284512.125, -4716392.5, 4079688.0)), Some(0.0625)), m(None, None)];
         let path = dir.path().join("matches.csv");
         write_match_records(&path, &rows).unwrap();
         assert_eq!(read_match_records(&path).unwrap(), rows);
@@ -883,9 +893,9 @@ mod tests {
             "t,landmark,u,v,pred_u,pred_v,residual_px,inlier\n0.25,7,10.5,20.25,10,20,0.559,1\n",
         )
         .unwrap();
-        assert_eq!(read_match_records(&path).unwrap(), vec![m(None)]);
+        assert_eq!(read_match_records(&path).unwrap(), vec![m(None, None)]);
         // Half a position is an error that names the fields.
-        std::fs::write(&path, format!("{MATCHES_HEADER}\n0.25,7,10.5,20.25,10,20,0.559,1,1,2,\n")).unwrap();
+        std::fs::write(&path, format!("{MATCHES_HEADER}\n0.25,7,10.5,20.25,10,20,0.559,1,1,2,,\n")).unwrap();
         let e = read_match_records(&path).unwrap_err().to_string();
         assert!(e.contains("x_m, y_m, z_m") && e.contains("matches.csv"), "{e}");
     }

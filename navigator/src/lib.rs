@@ -29,10 +29,10 @@ use std::path::{Path, PathBuf};
 
 use ::image::ImageEncoder;
 
-use trn_flight::{FixStatus, Flight, MatchRecord, NavRecord, PoseCovariance};
+use trn_flight::{FixStatus, Flight, MatchRecord, NavRecord, PoseCovariance, TimedPose};
 
 pub use http_source::HttpSource;
-pub use nav::{FilterMode, HeightGate, HeightReference, NavParams, Navigator, Rejection};
+pub use nav::{FilterMode, FilterPose, HeightGate, HeightReference, NavParams, Navigator, Rejection};
 pub use source::{DbSource, LandmarkSource, SourceError};
 
 /// Errors of a navigation run; each names the file at fault.
@@ -46,6 +46,8 @@ pub enum NavError {
     Source(#[from] SourceError),
     #[error("{}: {reason}", path.display())]
     Picture { path: PathBuf, reason: String },
+    #[error("{option}: {reason}")]
+    Option { option: &'static str, reason: String },
 }
 
 /// What `trn navigate` is asked to do.
@@ -57,6 +59,9 @@ pub struct RunOptions {
     /// Write a match picture per processed frame here ([`picture`]), named
     /// after the frame's image (`.png`).
     pub matches_dir: Option<PathBuf>,
+    /// Also output the inertial filter's pose at every IMU sample
+    /// ([`RunOutput::imu_rate`]; needs the filter).
+    pub imu_rate: bool,
 }
 
 /// Summary of a run.
@@ -160,6 +165,10 @@ pub struct RunOutput {
     pub records: Vec<NavRecord>,
     pub matches: Vec<MatchRecord>,
     pub covariances: Vec<PoseCovariance>,
+    /// With [`RunOptions::imu_rate`]: the filter's pose and covariance at
+    /// every IMU sample between the first and the last processed frame
+    /// (status `propagated`) and at each processed frame (its status).
+    pub imu_rate: Vec<(NavRecord, PoseCovariance)>,
     pub report: RunReport,
 }
 
@@ -174,6 +183,24 @@ pub fn run_flight(
     let mut records = Vec::new();
     let mut matches = Vec::new();
     let mut covariances = Vec::new();
+    let mut imu_rate = Vec::new();
+    if opts.imu_rate && opts.params.filter == FilterMode::Fixes {
+        return Err(NavError::Option {
+            option: "--imu-rate",
+            reason: "needs the inertial filter (--filter tight or loose)".into(),
+        });
+    }
+    let row = |p: FilterPose, status: FixStatus| {
+        let position = p.pose.position.to_geodetic();
+        let record = NavRecord {
+            pose: TimedPose { t: p.t, position, q_ecef_cam: p.pose.q_ecef_cam },
+            status,
+            inliers: 0,
+            matches: 0,
+            ms: 0.0,
+        };
+        (record, PoseCovariance { t: p.t, position, ecef: p.covariance })
+    };
     let mut next_due = f64::NEG_INFINITY;
     let mut rejected = RejectedCounts::default();
     for (i, frame) in flight.frames.iter().enumerate() {
@@ -196,7 +223,13 @@ pub fn run_flight(
             });
         }
         let picture_of = opts.matches_dir.as_ref().map(|dir| (dir, img.clone()));
+        if opts.imu_rate && !records.is_empty() {
+            imu_rate.extend(nav.poses_until(frame.t).into_iter().map(|p| row(p, FixStatus::Propagated)));
+        }
         let r = nav.process(frame.t, img);
+        if opts.imu_rate {
+            imu_rate.extend(nav.filter_pose(frame.t).map(|p| row(p, r.record.status)));
+        }
         if let Some((dir, img)) = picture_of {
             let name =
                 frame.image.file_stem().map(|s| s.to_os_string()).unwrap_or_else(|| format!("{i:06}").into());
@@ -233,5 +266,5 @@ pub fn run_flight(
             TimeOffsetReport { offset_ms: offset * 1e3, sigma_ms: sigma * 1e3 }
         }),
     };
-    Ok(RunOutput { records, matches, covariances, report })
+    Ok(RunOutput { records, matches, covariances, imu_rate, report })
 }

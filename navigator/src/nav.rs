@@ -11,7 +11,9 @@ use trn_landmark::lighting::SunLight;
 use trn_landmark::Template;
 use trn_vision::calib::{frame_calibration, perturb_pose, FrameCalibration};
 use trn_vision::ncc::{self, ImageView, NccParams};
-use trn_vision::pnp::{refine_pose, rotation_vector, AttitudePrior, PosePrior, RefineOptions, Refined};
+use trn_vision::pnp::{
+    refine_pose, refine_pose_weighted, rotation_vector, AttitudePrior, PosePrior, RefineOptions, Refined,
+};
 use trn_vision::ransac::{ransac_p3p, RansacParams};
 
 use crate::attitude::{AttitudeFilter, GyroErrors};
@@ -251,6 +253,15 @@ impl HeightGate {
     }
 }
 
+/// The inertial filter's estimate at one time: the camera pose (map offset
+/// not added) and its covariance (`[dtheta; dp]`, ECEF, as `covariance.csv`).
+#[derive(Clone, Debug)]
+pub struct FilterPose {
+    pub t: f64,
+    pub pose: CameraPose,
+    pub covariance: Matrix6<f64>,
+}
+
 /// Terrain relative navigation over one flight.
 pub struct Navigator<'a> {
     source: &'a dyn LandmarkSource,
@@ -363,6 +374,9 @@ const CALIBRATION_MIN_SIGMA_PX: f64 = 0.1;
 /// filter's update.
 const REFINE_SIGMA_PX: f64 = 0.1;
 const REFINE_HUBER_PX: f64 = 1.0;
+/// Largest correlation-peak sigma a match is given (px): an edge's is
+/// infinite along it.
+const MAX_PEAK_SIGMA_PX: f64 = 5.0;
 
 impl<'a> Navigator<'a> {
     pub fn new(
@@ -602,7 +616,8 @@ impl<'a> Navigator<'a> {
             pixel_sigma: (inlier_rms_px(sol) / 2f64.sqrt()).max(REFINE_SIGMA_PX),
             ..RefineOptions::default()
         };
-        refine_pose(&self.camera, &px, &pts, &sol.pose, &opts)
+        let sigmas = inlier_sigmas_px(sol);
+        refine_pose_weighted(&self.camera, &px, &pts, Some(&sigmas), &sol.pose, &opts)
     }
 
     /// Whether the frame's image-only pose agrees with the inertial filter's
@@ -667,6 +682,34 @@ impl<'a> Navigator<'a> {
     /// The inertial filter (`None`: [`FilterMode::Fixes`]).
     pub fn inertial(&self) -> Option<&InsFilter> {
         self.ins.as_ref()
+    }
+
+    /// The inertial filter's camera pose and covariance carried to every IMU
+    /// sample time after its last state and before `t1` (the IMU-rate
+    /// output between frames); empty without the filter.
+    pub fn poses_until(&self, t1: f64) -> Vec<FilterPose> {
+        let Some(ins) = &self.ins else { return Vec::new() };
+        let mut f = ins.clone();
+        let t0 = f.state.t;
+        let from = self.imu.partition_point(|s| s.t <= t0);
+        let to = self.imu.partition_point(|s| s.t < t1);
+        self.imu[from..to.max(from)]
+            .iter()
+            .map(|s| {
+                f.propagate(s.t, self.imu);
+                let (pose, covariance) = f.pose(&self.q_imu_cam);
+                FilterPose { t: s.t, pose, covariance }
+            })
+            .collect()
+    }
+
+    /// The inertial filter's camera pose and covariance at `t` (its last
+    /// state carried there when older); `None` without the filter.
+    pub fn filter_pose(&self, t: f64) -> Option<FilterPose> {
+        let mut f = self.ins.clone()?;
+        f.propagate(t, self.imu);
+        let (pose, covariance) = f.pose(&self.q_imu_cam);
+        Some(FilterPose { t: f.state.t, pose, covariance })
     }
 
     /// The camera's self-calibration (`None`: camera.json trusted).
@@ -1041,6 +1084,7 @@ impl<'a> Navigator<'a> {
         let mut points = Vec::new();
         let mut ids = Vec::new();
         let mut preds = Vec::new();
+        let mut sigmas = Vec::new();
         for p in &predicted {
             let u0 = p.patch_center.u;
             let v0 = p.patch_center.v;
@@ -1049,6 +1093,8 @@ impl<'a> Navigator<'a> {
                 points.push(p.center_ecef.0);
                 ids.push(p.template_id);
                 preds.push(p.center_px);
+                // At full resolution; an edge's (infinite along it) capped.
+                sigmas.push((m.sigma_px * scale).min(MAX_PEAK_SIGMA_PX));
             }
         }
         let n = pixels.len();
@@ -1119,6 +1165,7 @@ impl<'a> Navigator<'a> {
                 residual_px: res.min(1e6),
                 inlier: inl,
                 landmark_ecef: Some(trn_geodesy::Ecef(points[i])),
+                sigma_px: Some(sigmas[i]),
             });
         }
         Ok(Solution {
@@ -1324,6 +1371,43 @@ fn inliers_of(sol: &Solution) -> (Vec<Pixel>, Vec<Vector3<f64>>) {
         .unzip()
 }
 
+/// Per inlier, the pixel sigma (per coordinate): the correlation peak's own
+/// (`sigma_px`) on top of a sigma `s0` that every match shares (the map, the
+/// DEM, the warp), with `s0` such that the residuals are as large as the
+/// sigmas say: `sum r^2 / (2 (s0^2 + s_i^2)) = n`. Where the peaks alone
+/// explain more than the residuals show, the peaks' sigmas are scaled down
+/// to fit. At least [`REFINE_SIGMA_PX`]. Without peak sigmas: the inliers'
+/// RMS per coordinate for all.
+fn inlier_sigmas_px(sol: &Solution) -> Vec<f64> {
+    let (r2, s2): (Vec<f64>, Vec<f64>) = sol
+        .records
+        .iter()
+        .filter(|r| r.inlier && r.landmark_ecef.is_some())
+        .map(|r| (r.residual_px.powi(2), r.sigma_px.unwrap_or(0.0).powi(2)))
+        .unzip();
+    let n = r2.len() as f64;
+    let excess =
+        |s0_2: f64| r2.iter().zip(&s2).map(|(r, s)| r / (2.0 * (s0_2 + s).max(1e-12))).sum::<f64>() - n;
+    let var: Vec<f64> = if excess(0.0) <= 0.0 {
+        // The peaks' sigmas alone are too large: scale them to the residuals.
+        let k2 = (excess(0.0) + n) / n.max(1.0);
+        s2.iter().map(|s| s * k2).collect()
+    } else {
+        // excess() falls as s0 grows; bisect on s0^2 up to the RMS's.
+        let (mut lo, mut hi) = (0.0, r2.iter().sum::<f64>() / (2.0 * n.max(1.0)) + 1e-12);
+        for _ in 0..50 {
+            let mid = 0.5 * (lo + hi);
+            if excess(mid) > 0.0 {
+                lo = mid;
+            } else {
+                hi = mid;
+            }
+        }
+        s2.iter().map(|s| s + hi).collect()
+    };
+    var.iter().map(|v| v.sqrt().max(REFINE_SIGMA_PX)).collect()
+}
+
 /// Root mean square of the inliers' reprojection errors (pixels, distance).
 fn inlier_rms_px(sol: &Solution) -> f64 {
     let (n, sum) = sol
@@ -1366,6 +1450,65 @@ fn velocity_fit(fixes: &std::collections::VecDeque<(f64, Vector3<f64>)>) -> Opti
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn solution_of(matches: &[(f64, Option<f64>, bool)]) -> Solution {
+        let records = matches
+            .iter()
+            .enumerate()
+            .map(|(i, &(residual_px, sigma_px, inlier))| MatchRecord {
+                t: 0.0,
+                landmark: i as i64,
+                u: 0.0,
+                v: 0.0,
+                pred_u: 0.0,
+                pred_v: 0.0,
+                residual_px,
+                inlier,
+                landmark_ecef: Some(trn_geodesy::Ecef::new(1.0, 2.0, 3.0)),
+                sigma_px,
+            })
+            .collect();
+        Solution {
+            pose: CameraPose::new(trn_geodesy::Ecef::new(0.0, 0.0, 0.0), UnitQuaternion::identity()),
+            inliers: 0,
+            n_matches: matches.len(),
+            records,
+            points: Vec::new(),
+            guess_px: Vec::new(),
+            covariance: Matrix6::identity(),
+            prior_loosened: false,
+            acquisition: false,
+            mean_landmark_h: None,
+        }
+    }
+
+    #[test]
+    fn per_match_sigmas_add_a_shared_sigma_that_fits_the_residuals() {
+        // Residuals of 1 px; peaks of 0.05 px and one weak one of 2 px.
+        let mut m: Vec<(f64, Option<f64>, bool)> = (0..20).map(|_| (1.0, Some(0.05), true)).collect();
+        m.push((1.0, Some(2.0), true));
+        m.push((30.0, Some(0.01), false));
+        let sol = solution_of(&m);
+        let s = inlier_sigmas_px(&sol);
+        assert_eq!(s.len(), 21);
+        // sum r^2 / (2 sigma^2) = n over the inliers.
+        let fit: f64 = s.iter().map(|x| 1.0 / (2.0 * x * x)).sum();
+        assert!((fit - 21.0).abs() < 1e-6, "{fit}");
+        let s0 = (s[0] * s[0] - 0.05f64.powi(2)).sqrt();
+        assert!((s[20] * s[20] - s0 * s0 - 4.0).abs() < 1e-9, "{s:?}");
+        assert!(s[20] > 2.0 && s[0] < 0.71 && s[0] > 0.5, "{s:?}");
+        // Without peak sigmas: the inliers' RMS per coordinate, for all.
+        let sol = solution_of(
+            &(0..10).map(|i| (if i % 2 == 0 { 1.0 } else { 3.0 }, None, true)).collect::<Vec<_>>(),
+        );
+        let s = inlier_sigmas_px(&sol);
+        let rms = (inlier_rms_px(&sol) / 2f64.sqrt()).max(REFINE_SIGMA_PX);
+        assert!(s.iter().all(|x| (x - rms).abs() < 1e-6 * rms), "{s:?} {rms}");
+        // Peaks wider than the scatter: scaled down to it, their ratios kept.
+        let sol = solution_of(&[(0.5, Some(2.0), true), (0.5, Some(4.0), true), (0.5, Some(2.0), true)]);
+        let s = inlier_sigmas_px(&sol);
+        assert!((s[1] / s[0] - 2.0).abs() < 1e-9 && s[0] < 2.0, "{s:?}");
+    }
 
     #[test]
     fn inliers_on_a_line_or_in_a_cluster_do_not_spread() {

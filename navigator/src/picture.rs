@@ -90,6 +90,7 @@ mod tests {
             residual_px: 0.0,
             inlier,
             landmark_ecef: None,
+            sigma_px: None,
         }
     }
 

@@ -149,10 +149,32 @@ pub fn refine_pose(
     initial: &CameraPose,
     opts: &RefineOptions,
 ) -> Option<Refined> {
+    refine_pose_weighted(camera, pixels, points_ecef, None, initial, opts)
+}
+
+/// [`refine_pose`] with a pixel sigma per match (`sigma_px[i]`, replacing
+/// `opts.pixel_sigma`; each must be positive and finite), e.g. the
+/// correlation peak's own uncertainty on top of what all matches share.
+pub fn refine_pose_weighted(
+    camera: &CameraModel,
+    pixels: &[Pixel],
+    points_ecef: &[Vector3<f64>],
+    sigma_px: Option<&[f64]>,
+    initial: &CameraPose,
+    opts: &RefineOptions,
+) -> Option<Refined> {
     let n = pixels.len();
     if n < 3 || points_ecef.len() != n || !(opts.pixel_sigma > 0.0 && opts.pixel_sigma.is_finite()) {
         return None;
     }
+    let positive = |s: f64| s > 0.0 && s.is_finite();
+    if sigma_px.is_some_and(|s| s.len() != n || !s.iter().all(|&x| positive(x))) {
+        return None;
+    }
+    let inv_sigma2: Vec<f64> = match sigma_px {
+        Some(s) => s.iter().map(|x| 1.0 / (x * x)).collect(),
+        None => vec![1.0 / (opts.pixel_sigma * opts.pixel_sigma); n],
+    };
     if opts.huber_px.is_some_and(|k| !(k > 0.0)) {
         return None;
     }
@@ -173,7 +195,7 @@ pub fn refine_pose(
         pixels,
         local: points_ecef.iter().map(|p| p - origin.0).collect(),
         huber_px: opts.huber_px,
-        inv_sigma2: 1.0 / (opts.pixel_sigma * opts.pixel_sigma),
+        inv_sigma2,
         prior,
     };
     let mut state = State { q: initial.q_ecef_cam, c: Vector3::zeros() };
@@ -211,7 +233,7 @@ pub fn refine_pose(
                 // Converged: tiny step, stalled cost, or (noise-free) RMS below 1e-12 px.
                 if tiny_step
                     || decrease <= 1e-14 * old_cost
-                    || lin.cost <= 1e-24 * n as f64 * problem.inv_sigma2
+                    || lin.cost <= 1e-24 * problem.inv_sigma2.iter().sum::<f64>()
                 {
                     break;
                 }
@@ -347,7 +369,8 @@ struct Problem<'a> {
     pixels: &'a [Pixel],
     local: Vec<Vector3<f64>>,
     huber_px: Option<f64>,
-    inv_sigma2: f64,
+    /// Per match: 1 / sigma^2 (px^-2).
+    inv_sigma2: Vec<f64>,
     prior: Option<PriorTerm>,
 }
 
@@ -370,12 +393,12 @@ impl Problem<'_> {
         let mut cost = 0.0;
         let mut h = Matrix6::zeros();
         let mut g = Vector6::zeros();
-        for (x, obs) in self.local.iter().zip(self.pixels) {
+        for ((x, obs), &inv_sigma2) in self.local.iter().zip(self.pixels).zip(&self.inv_sigma2) {
             let pt = linearize_point(cam, &r_cam_ecef, &(x - state.c), obs)?;
             let (r, j) = (pt.residual_px, pt.j_pose);
             let (rho, w) = huber(r.norm_squared(), self.huber_px);
-            cost += rho * self.inv_sigma2;
-            let ws = w * self.inv_sigma2;
+            cost += rho * inv_sigma2;
+            let ws = w * inv_sigma2;
             h += j.transpose() * j * ws;
             g += j.transpose() * r * ws;
         }
@@ -604,7 +627,7 @@ mod tests {
                 pixels: &scene.pixels,
                 local: scene.points.iter().map(|p| p - origin.0).collect(),
                 huber_px: None,
-                inv_sigma2: 1.0,
+                inv_sigma2: vec![1.0; scene.pixels.len()],
                 prior: Some(prior),
             };
             let start = perturbed(&mut rng, &scene.pose, 30.0, 0.5);
@@ -881,6 +904,54 @@ mod tests {
         // Three exact points do determine the pose (locally).
         let r = refine_pose(&camera, &scene.pixels[..3], &scene.points[..3], &pose, &opts);
         assert!(r.is_some());
+    }
+
+    #[test]
+    fn per_match_sigmas_weigh_the_matches() {
+        let camera = CameraModel::from_fov(1024, 768, 60.0);
+        let mut rng = Rng::new(12);
+        let mut scene = nadir_scene(&mut rng, &camera, 5000.0, 40, 500.0, 10.0);
+        add_noise(&mut rng, &mut scene.pixels, 0.3);
+        // One match 40 px off: with a huge sigma it counts for nothing.
+        scene.pixels[7].u += 40.0;
+        let opts = RefineOptions { pixel_sigma: 0.3, ..RefineOptions::default() };
+        let start = scene.pose;
+        let plain = refine_pose(&camera, &scene.pixels, &scene.points, &start, &opts).unwrap();
+        // Equal sigmas are the uniform refinement.
+        let equal = vec![0.3; scene.pixels.len()];
+        let same =
+            refine_pose_weighted(&camera, &scene.pixels, &scene.points, Some(&equal), &start, &opts).unwrap();
+        assert!((same.pose.position.0 - plain.pose.position.0).norm() < 1e-6);
+        assert!((same.covariance - plain.covariance).norm() < 1e-9 * plain.covariance.norm());
+        let mut sig = equal.clone();
+        sig[7] = 1e4;
+        let w =
+            refine_pose_weighted(&camera, &scene.pixels, &scene.points, Some(&sig), &start, &opts).unwrap();
+        let keep: Vec<usize> = (0..scene.pixels.len()).filter(|&i| i != 7).collect();
+        let px: Vec<Pixel> = keep.iter().map(|&i| scene.pixels[i]).collect();
+        let pts: Vec<Vector3<f64>> = keep.iter().map(|&i| scene.points[i]).collect();
+        let without = refine_pose(&camera, &px, &pts, &start, &opts).unwrap();
+        let d = (w.pose.position.0 - without.pose.position.0).norm();
+        let d_plain = (plain.pose.position.0 - without.pose.position.0).norm();
+        println!("weighted vs dropped: {d:.4} m; uniform vs dropped: {d_plain:.2} m");
+        assert!(d < 0.01 * d_plain && d < 0.05, "{d} {d_plain}");
+        // Bad sigmas are refused.
+        for bad in [
+            vec![0.3; 3],
+            {
+                let mut b = equal.clone();
+                b[0] = 0.0;
+                b
+            },
+            {
+                let mut b = equal;
+                b[1] = f64::NAN;
+                b
+            },
+        ] {
+            assert!(refine_pose_weighted(&camera, &scene.pixels, &scene.points, Some(&bad), &start, &opts)
+                .is_none());
+        }
     }
 
     fn solve_case(seed: u64, share: f64, camera: &CameraModel, altitude: f64) {

@@ -1072,11 +1072,16 @@ fn build_group(
     let workers: Vec<Mutex<Option<Worker>>> =
         (0..rayon::current_num_threads().max(1)).map(|_| Mutex::new(None)).collect();
     let margin_of = |p: usize| plans[p].iter().map(|l| level_margin(*l)).max().unwrap_or(0);
-    // A mosaic's VRT reads its files' blocks, of sizes unknown here: GDAL's default then.
-    let _cache = (g.files.len() == 1)
-        .then(|| pyramid::ortho_cache_bytes(&g.path, tile_dims(0).1 + 2 * margin_of(0), workers.len()))
-        .flatten()
-        .map(pyramid::CacheLimit::new);
+    // A mosaic's VRT caches its own blocks and its files' (and a warped
+    // source's, the warper's source windows): three layers, with blocks of up
+    // to 512 rows assumed where the files' are unknown here.
+    let window_h = tile_dims(0).1 + 2 * margin_of(0);
+    let _cache = if g.files.len() == 1 {
+        pyramid::ortho_cache_bytes(&g.path, window_h, workers.len())
+    } else {
+        pyramid::ortho_cache_bytes(&g.path, window_h.div_ceil(512) * 512, workers.len()).map(|b| 3 * b)
+    }
+    .map(pyramid::CacheLimit::new);
     for (p, &(w, h)) in sizes.iter().enumerate() {
         let next = if p < top {
             Some(LevelFile::create(work, &format!("g{}-p{}", g.index, p + 1), w / 2, h / 2)?)

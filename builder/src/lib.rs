@@ -351,7 +351,8 @@ impl LevelTally {
     }
 }
 
-/// An ortho mosaic: files with one CRS and pixel size, read as one raster.
+/// An ortho mosaic read as one raster: files with one CRS and pixel size, and
+/// files with the same bands in other CRSs or pixel sizes warped onto their grid.
 struct OrthoGroup {
     index: u32,
     /// The raster read (the file itself, or a VRT over several).
@@ -559,8 +560,8 @@ pub fn build(opts: &BuildOptions, cancel: &AtomicBool) -> Result<BuildReport> {
 
 /// Runs the selection over every ortho group, streaming templates to the
 /// writer; from the second group on, a template closer to one of an earlier
-/// group's (same level) than [`Dedupe`] allows is a duplicate where mosaics in
-/// different CRSs overlap, and is dropped (the earlier group's is kept).
+/// group's (same level) than [`Dedupe`] allows is a duplicate where mosaics of
+/// different bands overlap, and is dropped (the earlier group's is kept).
 #[allow(clippy::too_many_arguments)]
 fn select_all(
     opts: &BuildOptions,
@@ -612,7 +613,7 @@ fn select_all(
 }
 
 /// Landmarks kept from earlier ortho groups, on a grid per level: where
-/// mosaics in different CRSs overlap, a template closer than half the
+/// mosaics of different bands overlap, a template closer than half the
 /// smallest default cell (a quarter of a template) or half `--spacing` to one
 /// of them is a duplicate. Positions only (ECEF), so the index stays small
 /// while the templates stream to the writer.

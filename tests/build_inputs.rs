@@ -449,6 +449,32 @@ fn sixteen_bit_ortho_mosaic() {
     assert_similar_count(&mosaic, &reference);
 }
 
+/// The columns `west_cols` of `ortho` kept in UTM (RGB, or RGBA with
+/// `west_alpha`) and `east_cols` warped to lat/lon with an alpha band.
+fn cut_west_east(
+    d: &Path,
+    ortho: &Path,
+    name: &str,
+    west_cols: (usize, usize),
+    east_cols: (usize, usize),
+    west_alpha: bool,
+) -> (PathBuf, PathBuf) {
+    let west = d.join(format!("{name}-west.tif"));
+    let east_utm = d.join(format!("{name}-east-utm.tif"));
+    let east = d.join(format!("{name}-east-4326.tif"));
+    let win =
+        |(c0, c1): (usize, usize)| [c0.to_string(), "0".into(), (c1 - c0).to_string(), SIZE.to_string()];
+    let w = win(west_cols);
+    let alpha: &[&str] =
+        if west_alpha { &["-b", "1", "-b", "2", "-b", "3", "-b", "mask", "-co", "ALPHA=YES"] } else { &[] };
+    translate(ortho, &west, &[&["-srcwin", &w[0], &w[1], &w[2], &w[3]][..], alpha].concat());
+    let e = win(east_cols);
+    translate(ortho, &east_utm, &["-srcwin", &e[0], &e[1], &e[2], &e[3]]);
+    warp(&east_utm, &east, &["-t_srs", "EPSG:4326", "-r", "bilinear", "-dstalpha"]);
+    std::fs::remove_file(&east_utm).unwrap();
+    (west, east)
+}
+
 #[test]
 fn ortho_mosaic_across_crs() {
     let dir = tempfile::tempdir().unwrap();
@@ -463,19 +489,8 @@ fn ortho_mosaic_across_crs() {
     for (name, west_cols, east_cols) in
         [("side-by-side", (0, 400), (400, 800)), ("overlapping", (0, 500), (300, 800))]
     {
-        let west = d.join(format!("{name}-west.tif"));
-        let east_utm = d.join(format!("{name}-east-utm.tif"));
-        let east = d.join(format!("{name}-east-4326.tif"));
-        let win =
-            |(c0, c1): (usize, usize)| [c0.to_string(), "0".into(), (c1 - c0).to_string(), SIZE.to_string()];
-        let w = win(west_cols);
         // RGBA like the warped east part: the same bands.
-        let alpha = ["-b", "1", "-b", "2", "-b", "3", "-b", "mask", "-co", "ALPHA=YES"];
-        translate(&ortho, &west, &[&["-srcwin", &w[0], &w[1], &w[2], &w[3]][..], &alpha[..]].concat());
-        let e = win(east_cols);
-        translate(&ortho, &east_utm, &["-srcwin", &e[0], &e[1], &e[2], &e[3]]);
-        warp(&east_utm, &east, &["-t_srs", "EPSG:4326", "-r", "bilinear", "-dstalpha"]);
-        std::fs::remove_file(&east_utm).unwrap();
+        let (west, east) = cut_west_east(d, &ortho, name, west_cols, east_cols, true);
         let alone_w = build_ell(d, &format!("{name}-west-alone"), &[&west], &[&dem], &gsd);
         let alone_e = build_ell(d, &format!("{name}-east-alone"), &[&east], &[&dem], &gsd);
         let mosaic = build_ell(d, &format!("{name}-mosaic"), &[&west, &east], &[&dem], &gsd);
@@ -553,17 +568,7 @@ fn ortho_groups_with_other_bands_are_deduplicated() {
     for (name, west_cols, east_cols) in
         [("side-by-side", (0, 400), (400, 800)), ("overlapping", (0, 500), (300, 800))]
     {
-        let west = d.join(format!("{name}-west.tif"));
-        let east_utm = d.join(format!("{name}-east-utm.tif"));
-        let east = d.join(format!("{name}-east-4326.tif"));
-        let win =
-            |(c0, c1): (usize, usize)| [c0.to_string(), "0".into(), (c1 - c0).to_string(), SIZE.to_string()];
-        let w = win(west_cols);
-        translate(&ortho, &west, &["-srcwin", &w[0], &w[1], &w[2], &w[3]]);
-        let e = win(east_cols);
-        translate(&ortho, &east_utm, &["-srcwin", &e[0], &e[1], &e[2], &e[3]]);
-        warp(&east_utm, &east, &["-t_srs", "EPSG:4326", "-r", "bilinear", "-dstalpha"]);
-        std::fs::remove_file(&east_utm).unwrap();
+        let (west, east) = cut_west_east(d, &ortho, name, west_cols, east_cols, false);
         let alone_w = build_ell(d, &format!("{name}-west-alone"), &[&west], &[&dem], &gsd);
         let alone_e = build_ell(d, &format!("{name}-east-alone"), &[&east], &[&dem], &gsd);
         let mosaic = build_ell(d, &format!("{name}-mosaic"), &[&west, &east], &[&dem], &gsd);

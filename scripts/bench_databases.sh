@@ -3,7 +3,7 @@
 # scripts/bench_realistic.sh (its flights and database DEMs in target/realistic/):
 #
 # 1. Landmarks in view at the true pose of every frame: the server's own
-#    selection (`trn_navigator::view::landmarks_in_view`, the code behind
+#    selection (`trn_view::landmarks_in_view`, the code behind
 #    /v1/footprint and /v1/coverage) run by `trn coverage --db` on a plan made of
 #    the flight's truth.csv poses and its camera.json. Per scenario and
 #    database: the median and the minimum over frames, and the share of frames

@@ -1,4 +1,7 @@
-//! `trn`: the command line of the landmark system (build, and more to come).
+//! `trn`: the command line of the landmark system. Parsing and option checks
+//! live here; each subcommand calls one product (`trn build`: trn-builder,
+//! `trn serve` and `trn coverage`: trn-server, `trn navigate`: trn-navigator)
+//! or tool (`trn simulate`, `trn degrade-dem`: trn-sim; `trn evaluate`: trn-eval).
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -153,11 +156,6 @@ struct BuildArgs {
     /// Worker threads (default: all cores).
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=1024))]
     threads: Option<u32>,
-    /// Serve from memory when the whole database (encoded templates and index)
-    /// fits in this many MB; a larger one is queried in SQLite. 0: never.
-    #[arg(long, default_value_t = trn_server::DEFAULT_CACHE_MB,
-          value_parser = clap::value_parser!(u64).range(0..=1 << 24))]
-    cache_mb: u64,
 }
 
 #[derive(clap::Args)]
@@ -243,11 +241,6 @@ struct SimulateArgs {
     /// Worker threads (default: all cores).
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=1024))]
     threads: Option<u32>,
-    /// Serve from memory when the whole database (encoded templates and index)
-    /// fits in this many MB; a larger one is queried in SQLite. 0: never.
-    #[arg(long, default_value_t = trn_server::DEFAULT_CACHE_MB,
-          value_parser = clap::value_parser!(u64).range(0..=1 << 24))]
-    cache_mb: u64,
 }
 
 #[derive(clap::Args)]
@@ -503,11 +496,29 @@ fn run_build(a: BuildArgs) -> anyhow::Result<()> {
         }
         None => None,
     };
-    let report = trn_builder::build(&o, &cancel)?;
+    let bar = indicatif::ProgressBar::new(0);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "{msg} [{bar:40}] {pos}/{len} tiles, {elapsed_precise} (eta {eta})",
+        )
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+    );
+    let progress = |p: trn_builder::Progress| match p {
+        trn_builder::Progress::Group { label, tiles } => {
+            bar.reset();
+            bar.set_length(tiles);
+            bar.set_message(format!("building {label}"));
+        }
+        trn_builder::Progress::Tile => bar.inc(1),
+        trn_builder::Progress::GroupDone => bar.finish_and_clear(),
+    };
+    let report = trn_builder::build(&o, &cancel, &progress);
+    bar.finish_and_clear();
+    let report = report?;
     let mut json = serde_json::to_value(&report)?;
     if let Some((p, req)) = plan {
         let db = trn_store::LandmarkDb::open(&report.out)?;
-        let levels = trn_navigator::view::DbLevel::of(&db.levels()?);
+        let levels = trn_view::DbLevel::of(&db.levels()?);
         let cov = trn_server::coverage::coverage_query(&db, &levels, &req)
             .map_err(|e| anyhow::anyhow!("{}: {}", p.display(), e.message))?;
         let mut n: Vec<usize> = cov.points.iter().map(|q| q.landmarks).collect();
@@ -686,7 +697,7 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
     let flight = trn_flight::Flight::open(&a.flight)?;
     let source: Box<dyn trn_navigator::LandmarkSource> = match (&a.db, &a.server) {
         (Some(db), _) => Box::new(trn_navigator::DbSource::open(db)?),
-        (None, Some(url)) => Box::new(trn_navigator::HttpSource::connect(url)?),
+        (None, Some(url)) => Box::new(trn_client::HttpSource::connect(url)?),
         (None, None) => anyhow::bail!("give --db or --server"),
     };
     let mut params = trn_navigator::NavParams { use_gyro: !a.no_gyro, ..Default::default() };
@@ -944,13 +955,13 @@ fn run_serve(a: ServeArgs) -> anyhow::Result<()> {
 }
 
 fn run_coverage(a: CoverageArgs) -> anyhow::Result<()> {
-    use trn_server::coverage::CoverageSource;
+    use trn_server::coverage_cli::CoverageSource;
     let source = match (&a.db, &a.server) {
         (Some(db), None) => CoverageSource::Db(db),
         (None, Some(url)) => CoverageSource::Server(url),
         _ => anyhow::bail!("give either --db or --server"),
     };
-    let report = trn_server::coverage::run_cli(
+    let report = trn_server::coverage_cli::run_cli(
         source,
         &a.plan,
         a.geojson.as_deref(),

@@ -22,9 +22,6 @@
 //! - Bad inputs fail with one `error:` line naming the culprit and leave
 //!   nothing behind; an existing flight folder is replaced whole.
 
-// `!(x > y)` also rejects NaN, on purpose.
-#![allow(clippy::neg_cmp_op_on_partial_ord)]
-
 mod common;
 
 use std::path::{Path, PathBuf};

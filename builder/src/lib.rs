@@ -8,9 +8,24 @@
 //! templates on the local tangent plane with the DEM's terrain ([`extract`]), and
 //! writes the database to a temporary file that is renamed into place only when
 //! everything succeeded.
+//!
+//! ```
+//! use std::path::PathBuf;
+//! use std::sync::atomic::AtomicBool;
+//! use trn_builder::{build, BuildOptions};
+//!
+//! // Bad input stops the build before any work, with a message naming the file,
+//! // and leaves nothing at --out.
+//! let out = std::env::temp_dir().join(format!("trn-doc-{}.gpkg", std::process::id()));
+//! let opts = BuildOptions::new(vec![PathBuf::from("no-such-ortho.tif")], vec![PathBuf::from("dem.tif")], out.clone());
+//! let err = build(&opts, &AtomicBool::new(false), &|_| {}).unwrap_err();
+//! assert!(err.to_string().contains("no-such-ortho.tif"), "{err}");
+//! assert!(!out.exists());
+//! ```
 
 pub mod error;
 pub mod extract;
+mod group;
 pub mod lighting;
 pub mod pyramid;
 pub mod select;
@@ -26,19 +41,15 @@ use std::sync::mpsc::SyncSender;
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
-use gdal::spatial_ref::CoordTransform;
-use indicatif::{ProgressBar, ProgressStyle};
-use rayon::prelude::*;
 use serde::Serialize;
 use tracing::{info, warn};
 use trn_landmark::lighting::SunLight;
 use trn_landmark::{GeoBox, Template};
 
 pub use error::{BuildError, Result};
-use extract::{ExtractParams, Reject, WindowGeo};
+use extract::Reject;
 use lighting::SunGrid;
-use pyramid::{LevelFile, OrthoReader, Window};
-use select::{CellStats, Core, Fill, LumWindow, SelectParams};
+use select::CellStats;
 use sizing::{GsdRange, LevelSpec, Mission};
 use source::{Luminance, RasterInfo, VerticalDatum};
 use terrain::{DemSampler, DemSpec};
@@ -362,9 +373,26 @@ struct OrthoGroup {
     files: Vec<PathBuf>,
 }
 
+/// Where a build stands, for a progress display (the CLI draws a bar).
+#[derive(Clone, Copy, Debug)]
+pub enum Progress<'a> {
+    /// An ortho group starts: its first file (and how many more), and its
+    /// tiles over all pyramid levels.
+    Group { label: &'a str, tiles: u64 },
+    /// One more tile of the group is done (from any worker thread).
+    Tile,
+    /// The group is done.
+    GroupDone,
+}
+
 /// Builds the landmark database. `cancel` stops the build between tiles; the
-/// output is then left untouched.
-pub fn build(opts: &BuildOptions, cancel: &AtomicBool) -> Result<BuildReport> {
+/// output is then left untouched. `progress` hears of every group and tile
+/// (`&|_| {}` to ignore it).
+pub fn build(
+    opts: &BuildOptions,
+    cancel: &AtomicBool,
+    progress: &(dyn Fn(Progress) + Sync),
+) -> Result<BuildReport> {
     let started = Instant::now();
     opts.check()?;
     let out_dir = match opts.out.parent() {
@@ -468,7 +496,8 @@ pub fn build(opts: &BuildOptions, cancel: &AtomicBool) -> Result<BuildReport> {
         }
         Ok(writer.finish()?)
     });
-    let selected = select_all(opts, &groups, &dems, &suns, base_gsd, &specs, work.path(), cancel, &tx);
+    let selected =
+        select_all(opts, &groups, &dems, &suns, base_gsd, &specs, work.path(), cancel, &tx, progress);
     drop(tx);
     let tallies = match selected {
         Ok(r) => r,
@@ -573,6 +602,7 @@ fn select_all(
     work: &Path,
     cancel: &AtomicBool,
     tx: &SyncSender<Vec<Template>>,
+    progress: &(dyn Fn(Progress) + Sync),
 ) -> Result<Vec<LevelTally>> {
     let mut tallies = vec![LevelTally::default(); specs.len()];
     let mut seen = Dedupe::default();
@@ -598,7 +628,7 @@ fn select_all(
             }
             tx.send(batch).map_err(|_| BuildError::WriterStopped)
         };
-        let tally = build_group(opts, g, dems, suns, base_gsd, specs, work, cancel, &sink)?;
+        let tally = group::build_group(opts, g, dems, suns, base_gsd, specs, work, cancel, &sink, progress)?;
         for (a, b) in tallies.iter_mut().zip(&tally) {
             a.merge(b);
         }
@@ -902,379 +932,6 @@ fn group_orthos(infos: Vec<(RasterInfo, Luminance)>, work: &Path) -> Result<Vec<
         groups.push(OrthoGroup { index: i as u32, path, info, lum, files });
     }
     Ok(groups)
-}
-
-/// Per-thread GDAL state for one group.
-struct Worker {
-    ortho: OrthoReader,
-    dem: DemSampler,
-    to_wgs: CoordTransform,
-    /// Buffers reused tile after tile: no allocation and no fresh pages per tile.
-    win: Window,
-    select: select::Scratch,
-    down_lum: Vec<f32>,
-    down_valid: Vec<u8>,
-}
-
-// SAFETY: GDAL datasets and OGR coordinate transformations may move between
-// threads as long as one thread uses them at a time; each Worker lives in its
-// own Mutex slot and is only touched while that lock is held.
-unsafe impl Send for Worker {}
-
-impl Worker {
-    fn new(g: &OrthoGroup, dems: &[DemSpec]) -> Result<Self> {
-        let ds = source::open(&g.path)?;
-        let srs = source::srs_of(&ds, &g.path)?;
-        let wgs = source::wgs84();
-        let err = |e: gdal::errors::GdalError| BuildError::BadRaster {
-            path: g.path.clone(),
-            reason: e.to_string(),
-        };
-        Ok(Self {
-            ortho: OrthoReader::open(&g.path, &g.lum)?,
-            dem: DemSampler::open(dems)?,
-            to_wgs: CoordTransform::new(&srs, &wgs).map_err(err)?,
-            win: Window::default(),
-            select: select::Scratch::default(),
-            down_lum: Vec::new(),
-            down_valid: Vec::new(),
-        })
-    }
-}
-
-/// One template level as processed on a pyramid level of a group.
-#[derive(Clone, Copy)]
-struct LevelPlan {
-    /// Index of the level in the ladder.
-    index: usize,
-    level: u8,
-    /// Pyramid level of the group it runs on (2^p native pixels per pixel).
-    pyramid_level: usize,
-    gsd_m: f64,
-    size_px: u32,
-    select: SelectParams,
-}
-
-#[allow(clippy::too_many_arguments)]
-fn build_group(
-    opts: &BuildOptions,
-    g: &OrthoGroup,
-    dems: &[DemSpec],
-    suns: &[SunGrid],
-    base_gsd: f64,
-    specs: &[LevelSpec],
-    work: &Path,
-    cancel: &AtomicBool,
-    sink: &(dyn Fn(Vec<Template>) -> Result<()> + Sync),
-) -> Result<Vec<LevelTally>> {
-    let native = g.info.pixel_dx_m.max(g.info.pixel_dy_m);
-    // Pyramid level p whose pixels are at most as coarse as the finest step.
-    let offset = ((base_gsd / native).log2() + 1e-9).floor().max(0.0) as usize;
-    let top = offset + specs.iter().map(|s| s.gsd_step as usize).max().unwrap_or(0);
-    let shares = sizing::spacing_shares(specs, &opts.gsd_range(), opts.mission.as_ref());
-    let plans_for = |p: usize| -> Vec<LevelPlan> {
-        let Some(step) = p.checked_sub(offset) else { return Vec::new() };
-        let scale = 2f64.powi(p as i32);
-        let (px_w, px_h) = (g.info.pixel_dx_m * scale, g.info.pixel_dy_m * scale);
-        specs
-            .iter()
-            .enumerate()
-            .filter(|(_, s)| s.gsd_step as usize == step)
-            .map(|(index, s)| {
-                let (t, gsd) = (s.size_px as f64, s.gsd_m);
-                let win_w = (t * gsd / px_w).round().max(4.0) as usize;
-                let win_h = (t * gsd / px_h).round().max(4.0) as usize;
-                let sp = opts.spacing(s.size_px, shares[index]) as f64 * gsd;
-                let r = (opts.search_radius_px as f64 * gsd / px_w.min(px_h)).round().max(2.0) as usize;
-                LevelPlan {
-                    index,
-                    level: s.level,
-                    pyramid_level: p,
-                    gsd_m: gsd,
-                    size_px: s.size_px,
-                    select: SelectParams {
-                        win_w,
-                        win_h,
-                        cell_w: (sp / px_w).round().max(2.0) as usize,
-                        cell_h: (sp / px_h).round().max(2.0) as usize,
-                        per_cell: opts.per_cell,
-                        fill: (opts.fill_share() > 0.0).then_some(Fill {
-                            share: opts.fill_share(),
-                            window_w: sizing::VIEW_CELLS.0,
-                            window_h: sizing::VIEW_CELLS.1,
-                            max_boost: FILL_MAX_BOOST,
-                        }),
-                        min_shi_tomasi: opts.min_shi_tomasi,
-                        min_contrast_std: opts.min_contrast_std,
-                        max_saturated: opts.max_saturated,
-                        search_radius: r,
-                        max_second_peak: opts.max_second_peak,
-                    },
-                }
-            })
-            .collect()
-    };
-    let plans: Vec<Vec<LevelPlan>> = (0..=top).map(plans_for).collect();
-    let mut tallies = vec![LevelTally::default(); specs.len()];
-    for ps in &plans {
-        for l in ps {
-            let scale = 2f64.powi(l.pyramid_level as i32);
-            tallies[l.index].cell_area_m2 = l.select.cell_w as f64
-                * g.info.pixel_dx_m
-                * scale
-                * l.select.cell_h as f64
-                * g.info.pixel_dy_m
-                * scale;
-        }
-    }
-
-    // Tiles per pyramid level, for the progress bar; a whole number of the
-    // largest cell of the levels cut there.
-    let sizes: Vec<(usize, usize)> = (0..=top).map(|p| (g.info.width >> p, g.info.height >> p)).collect();
-    let tile_dims = |p: usize| -> (usize, usize) {
-        let cw = plans[p].iter().map(|l| l.select.cell_w).max().unwrap_or(2);
-        let ch = plans[p].iter().map(|l| l.select.cell_h).max().unwrap_or(2);
-        let round = |cell: usize, target: usize| {
-            let mut n = target.div_ceil(cell).max(1);
-            if (n * cell) % 2 == 1 {
-                n += 1;
-            }
-            n * cell
-        };
-        (round(cw, 1024), round(ch, 512))
-    };
-    let tiles_of = |p: usize| -> Vec<(usize, usize, usize, usize)> {
-        let (w, h) = sizes[p];
-        let (tw, th) = tile_dims(p);
-        let mut v = Vec::new();
-        let mut y = 0;
-        while y < h {
-            let mut x = 0;
-            while x < w {
-                v.push((x, (x + tw).min(w), y, (y + th).min(h)));
-                x += tw;
-            }
-            y += th;
-        }
-        v
-    };
-    let total: usize = (0..=top).map(|p| tiles_of(p).len()).sum();
-    let bar = ProgressBar::new(total as u64);
-    bar.set_style(
-        ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} tiles, {elapsed_precise} (eta {eta})")
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
-    );
-    let first = g.files[0].file_name().unwrap_or_default().to_string_lossy().into_owned();
-    let more = if g.files.len() > 1 { format!(" +{}", g.files.len() - 1) } else { String::new() };
-    bar.set_message(format!("building {first}{more}"));
-
-    let mut prev: Option<LevelFile> = None;
-    // One set of GDAL/PROJ handles per thread: opening them costs milliseconds.
-    let workers: Vec<Mutex<Option<Worker>>> =
-        (0..rayon::current_num_threads().max(1)).map(|_| Mutex::new(None)).collect();
-    let margin_of = |p: usize| plans[p].iter().map(|l| level_margin(*l)).max().unwrap_or(0);
-    // A mosaic's VRT caches its own blocks and its files' (and a warped
-    // source's, the warper's source windows): three layers, with blocks of up
-    // to 512 rows assumed where the files' are unknown here.
-    let window_h = tile_dims(0).1 + 2 * margin_of(0);
-    let _cache = if g.files.len() == 1 {
-        pyramid::ortho_cache_bytes(&g.path, window_h, workers.len())
-    } else {
-        pyramid::ortho_cache_bytes(&g.path, window_h.div_ceil(512) * 512, workers.len()).map(|b| 3 * b)
-    }
-    .map(pyramid::CacheLimit::new);
-    for (p, &(w, h)) in sizes.iter().enumerate() {
-        let next = if p < top {
-            Some(LevelFile::create(work, &format!("g{}-p{}", g.index, p + 1), w / 2, h / 2)?)
-        } else {
-            None
-        };
-        let margin = margin_of(p);
-        let tiles = tiles_of(p);
-        type TileOut = Vec<(usize, CellStats, HashMap<Reject, usize>, f64)>;
-        let results: Vec<Result<TileOut>> = tiles
-            .par_iter()
-            .map(|&(x0, x1, y0, y1)| {
-                if cancel.load(Ordering::Relaxed) {
-                    return Err(BuildError::Cancelled);
-                }
-                let slot = &workers[rayon::current_thread_index().unwrap_or(0) % workers.len()];
-                let mut guard = slot.lock().unwrap_or_else(|e| e.into_inner());
-                if guard.is_none() {
-                    *guard = Some(Worker::new(g, dems)?);
-                }
-                let worker = guard.as_mut().expect("worker was just created");
-                let (wx0, wy0) = (x0 as isize - margin as isize, y0 as isize - margin as isize);
-                let (ww, wh) = (x1 - x0 + 2 * margin, y1 - y0 + 2 * margin);
-                let mut win = std::mem::take(&mut worker.win);
-                match &prev {
-                    None => worker.ortho.read_into(wx0, wy0, ww, wh, &mut win)?,
-                    Some(f) => f.read_into(wx0, wy0, ww, wh, &mut win)?,
-                };
-                if let Some(next) = &next {
-                    let (cw, ch) = ((x1 - x0) & !1, (y1 - y0) & !1);
-                    let nw = (cw / 2).min(next.width.saturating_sub(x0 / 2));
-                    if nw > 0 && ch > 0 {
-                        let rows = (ch / 2).min(next.height.saturating_sub(y0 / 2));
-                        let (lum, valid) = (&mut worker.down_lum, &mut worker.down_valid);
-                        pyramid::downsample2_into(&win, margin, margin, nw, rows, lum, valid);
-                        next.write(x0 / 2, y0 / 2, nw, lum, valid)?;
-                    }
-                }
-                let mut scratch = std::mem::take(&mut worker.select);
-                let mut t = Vec::new();
-                let mut stats = Vec::new();
-                for l in &plans[p] {
-                    let (cells, rejected, shading) = tile_templates(
-                        &win,
-                        margin,
-                        (x1 - x0, y1 - y0),
-                        l,
-                        g,
-                        worker,
-                        &mut scratch,
-                        opts,
-                        suns,
-                        &mut t,
-                    );
-                    stats.push((l.index, cells, rejected, shading));
-                }
-                (worker.win, worker.select) = (win, scratch);
-                if !t.is_empty() {
-                    sink(t)?;
-                }
-                bar.inc(1);
-                Ok(stats)
-            })
-            .collect();
-        for r in results {
-            let stats = r?;
-            for (i, cells, rejected, shading) in stats {
-                tallies[i].add(cells, rejected, shading);
-            }
-        }
-        for l in &plans[p] {
-            let names: Vec<String> = g.files.iter().map(|f| f.display().to_string()).collect();
-            info!(
-                "level {} ({} px at {:.2} m): {} templates from {}",
-                l.level,
-                l.size_px,
-                l.gsd_m,
-                tallies[l.index].cells.taken,
-                names.join(", ")
-            );
-        }
-        prev = next;
-    }
-    bar.finish_and_clear();
-    Ok(tallies)
-}
-
-/// Pixels a tile's window reaches past its core on each side.
-fn level_margin(l: LevelPlan) -> usize {
-    (l.select.win_w.max(l.select.win_h) as f64 * 0.75).ceil() as usize + l.select.search_radius + 4
-}
-
-/// Selects and cuts one level's templates on one tile (appended to `out`,
-/// once per sun of `suns` when there are any); a cell whose best candidate is
-/// refused at extraction takes the next. Also returns the sum of the
-/// landmarks' shading shares.
-#[allow(clippy::too_many_arguments)]
-fn tile_templates(
-    win: &Window,
-    margin: usize,
-    core_size: (usize, usize),
-    plan: &LevelPlan,
-    g: &OrthoGroup,
-    worker: &Worker,
-    scratch: &mut select::Scratch,
-    opts: &BuildOptions,
-    suns: &[SunGrid],
-    out: &mut Vec<Template>,
-) -> (CellStats, HashMap<Reject, usize>, f64) {
-    let share_suns: &[SunLight] = if opts.suns.is_empty() { &lighting::SHARE_SUNS } else { &opts.suns };
-    let mut shading_sum = 0.0;
-    let img = LumWindow { width: win.width, height: win.height, lum: &win.lum, valid: &win.valid };
-    let core = Core { x0: margin, x1: margin + core_size.0, y0: margin, y1: margin + core_size.1 };
-    let scale = 2f64.powi(plan.pyramid_level as i32);
-    let geo = WindowGeo { to_crs: g.info.to_crs, scale, to_wgs: &worker.to_wgs };
-    let ep = ExtractParams {
-        level: plan.level,
-        gsd_m: plan.gsd_m,
-        size_px: plan.size_px,
-        height_grid_n: opts.height_grid_n,
-        max_plane_residual_m: opts.max_relief_gsd.map(|r| r * plan.gsd_m),
-        max_view_deg: opts.max_view_deg(),
-        max_hidden_share: opts.max_hidden_share,
-        source: g.index,
-    };
-    let mut rejected: HashMap<Reject, usize> = HashMap::new();
-    // The DEM under the whole window, read once for all its templates (on the
-    // first candidate: most tiles of water or nodata have none).
-    let mut patch: Option<Option<terrain::DemPatch>> = None;
-    let mut accept = |c: &select::Candidate| -> bool {
-        let p = patch.get_or_insert_with(|| {
-            let (w, h) = (win.width as f64 - 1.0, win.height as f64 - 1.0);
-            let outline: Vec<(f64, f64)> = (0..=8)
-                .flat_map(|i| {
-                    [
-                        (w * i as f64 / 8.0, 0.0),
-                        (w * i as f64 / 8.0, h),
-                        (0.0, h * i as f64 / 8.0),
-                        (w, h * i as f64 / 8.0),
-                    ]
-                })
-                .collect();
-            geo.lonlat(win, &outline).and_then(GeoBox::around).map(|b| {
-                // A margin for the tangent plane's reach past the window's outline.
-                let (mx, my) =
-                    (0.05 * (b.max_lon_deg - b.min_lon_deg), 0.05 * (b.max_lat_deg - b.min_lat_deg));
-                worker.dem.patch(&GeoBox::new(
-                    b.min_lon_deg - mx,
-                    b.min_lat_deg - my,
-                    b.max_lon_deg + mx,
-                    b.max_lat_deg + my,
-                ))
-            })
-        });
-        let got = match p {
-            Some(p) => extract::extract(win, &geo, p, c, &ep),
-            None => extract::extract(win, &geo, &worker.dem, c, &ep),
-        };
-        match got {
-            Ok(mut t) => {
-                // Exact integer sums of the bytes, then the moments.
-                let n = t.pixels.len().max(1) as f64;
-                let (sum, sum_sq) = t
-                    .pixels
-                    .iter()
-                    .fold((0u64, 0u64), |(s, q), &v| (s + v as u64, q + (v as u64) * (v as u64)));
-                let mean = sum as f64 / n;
-                let std = (sum_sq as f64 / n - mean * mean).max(0.0).sqrt();
-                t.quality.shading_share =
-                    lighting::shading_share(&t.terrain.height_grid, mean, std, share_suns);
-                if opts.max_shading_share.is_some_and(|m| t.quality.shading_share as f64 > m) {
-                    *rejected.entry(Reject::Shading).or_default() += 1;
-                    return false;
-                }
-                shading_sum += t.quality.shading_share as f64;
-                if suns.is_empty() {
-                    out.push(t);
-                } else {
-                    for (k, sun) in suns.iter().enumerate() {
-                        out.push(Template { pixels: sun.relight(&t), lighting: k as u8 + 1, ..t.clone() });
-                    }
-                }
-                true
-            }
-            Err(r) => {
-                *rejected.entry(r).or_default() += 1;
-                false
-            }
-        }
-    };
-    let cells = select::select_with(&img, &plan.select, core, scratch, &mut accept);
-    (cells, rejected, shading_sum)
 }
 
 /// The lighting grids of `opts.suns` over the orthos, at the finest DEM's

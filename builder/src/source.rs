@@ -98,7 +98,8 @@ unsafe extern "C" fn gdal_to_log(
     msg: *const std::ffi::c_char,
 ) {
     if !msg.is_null() {
-        let msg = std::ffi::CStr::from_ptr(msg).to_string_lossy();
+        // SAFETY: GDAL passes a NUL-terminated message, valid during the call.
+        let msg = unsafe { std::ffi::CStr::from_ptr(msg) }.to_string_lossy();
         tracing::debug!("GDAL ({class}/{no}): {msg}");
     }
 }
@@ -307,7 +308,7 @@ pub fn warp_onto_grid(srcs: &[RasterInfo], onto: &RasterInfo, out: &Path) -> Res
 /// when the file has them).
 const FULL_CHECK_PIXELS: usize = 64 << 20;
 
-/// Reads band 1 (in full up to [`FULL_CHECK_PIXELS`], decimated beyond) and
+/// Reads band 1 (in full up to `FULL_CHECK_PIXELS`, decimated beyond) and
 /// fails when a block cannot be read (a truncated or damaged file) or when no
 /// pixel is valid (nodata, NaN, or masked out by an alpha/dataset mask).
 pub fn check_not_all_nodata(ds: &Dataset, path: &Path) -> Result<()> {

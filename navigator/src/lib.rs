@@ -2,28 +2,35 @@
 //!
 //! The main type is [`Navigator`]: for each image it propagates the
 //! attitude with the gyro ([`propagate`]), predicts which landmarks are in
-//! view from the pose guess ([`footprint`]: IBAL's corner projection with
-//! horizon handling and angle filter), queries them from a
+//! view from the pose guess ([`trn_view::footprint`]: IBAL's corner projection
+//! with horizon handling and angle filter), queries them from a
 //! [`LandmarkSource`], warps them into the image ([`predict`]), correlates
 //! them (NCC), and solves the pose with P3P RANSAC and PnP refinement
 //! (`trn-vision`), then accepts or rejects the fix. [`run_flight`] drives it
 //! over a flight folder and writes `poses.csv` and `matches.csv`.
-
-// `!(x > y)` is how these crates reject NaN along with out-of-range values.
-#![allow(clippy::neg_cmp_op_on_partial_ord)]
+//!
+//! ```
+//! use nalgebra::{UnitQuaternion, Vector3};
+//! use trn_flight::ImuSample;
+//! use trn_navigator::propagate::propagate;
+//!
+//! // The gyro carries the attitude between images: 10 deg/s about z for 1 s.
+//! let rate = Vector3::new(0.0, 0.0, 10f64.to_radians());
+//! let imu: Vec<ImuSample> =
+//!     (1..=100).map(|k| ImuSample { t: k as f64 * 0.01, w_imu_rad_s: rate, f_imu_m_s2: None }).collect();
+//! let q = propagate(UnitQuaternion::identity(), 0.0, 1.0, &imu);
+//! // Apart from the Earth's rotation, which propagate also removes (15 deg/h).
+//! assert!((q.angle().to_degrees() - 10.0).abs() < 0.01, "{}", q.angle().to_degrees());
+//! ```
 
 pub mod attitude;
 pub mod calibration;
-pub mod footprint;
-pub mod http_source;
 pub mod image;
 pub mod ins;
 pub mod nav;
 pub mod picture;
 pub mod predict;
 pub mod propagate;
-pub mod source;
-pub mod view;
 
 use std::path::{Path, PathBuf};
 
@@ -31,9 +38,8 @@ use ::image::ImageEncoder;
 
 use trn_flight::{FixStatus, Flight, MatchRecord, NavRecord, PoseCovariance, TimedPose};
 
-pub use http_source::HttpSource;
 pub use nav::{FilterMode, FilterPose, HeightGate, HeightReference, NavParams, Navigator, Rejection};
-pub use source::{DbSource, LandmarkSource, SourceError};
+pub use trn_view::{DbSource, LandmarkSource, SourceError};
 
 /// Errors of a navigation run; each names the file at fault.
 #[derive(Debug, thiserror::Error)]

@@ -18,13 +18,13 @@ use trn_vision::ransac::{ransac_p3p, RansacParams};
 
 use crate::attitude::{AttitudeFilter, GyroErrors};
 use crate::calibration::{CalibrationFilter, CalibrationParams};
-use crate::footprint::{footprint, FootprintParams};
 use crate::image::{GreyImage, Pyramid, UndistortLut};
 use crate::ins::{InsErrors, InsFilter, InsInit, InsState};
 use crate::predict::{predict, Predicted};
 use crate::propagate::propagate_with_bias;
-use crate::source::LandmarkSource;
-use crate::view::DbLevel;
+use trn_view::footprint::{footprint, FootprintParams};
+use trn_view::DbLevel;
+use trn_view::LandmarkSource;
 
 /// How the images' landmark matches are fused with the inertial sensors.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
@@ -385,12 +385,12 @@ impl<'a> Navigator<'a> {
         imu: &'a [ImuSample],
         init: &TimedPose,
         params: NavParams,
-    ) -> Result<Self, crate::source::SourceError> {
+    ) -> Result<Self, trn_view::SourceError> {
         let levels = DbLevel::of(&source.levels()?);
         if levels.is_empty() {
-            return Err(crate::source::SourceError("the landmark database has no templates".into()));
+            return Err(trn_view::SourceError("the landmark database has no templates".into()));
         }
-        let near = crate::view::terrain_near(source, &levels, &init.position)?;
+        let near = trn_view::visible::terrain_near(source, &levels, &init.position)?;
         let terrain_h_m = near.height_m;
         let (lighting, lit_for_flight) = choose_lighting(&source.suns()?, params.sun.as_ref());
         let ins = (params.filter != FilterMode::Fixes && params.use_gyro).then(|| {
@@ -893,11 +893,7 @@ impl<'a> Navigator<'a> {
     }
 
     /// Templates of `level` meeting `bbox`, through the per-level cache.
-    fn query(
-        &self,
-        bbox: &trn_landmark::GeoBox,
-        level: u8,
-    ) -> Result<Vec<Template>, crate::source::SourceError> {
+    fn query(&self, bbox: &trn_landmark::GeoBox, level: u8) -> Result<Vec<Template>, trn_view::SourceError> {
         let inside = |outer: &trn_landmark::GeoBox| {
             !bbox.crosses_antimeridian()
                 && !outer.crosses_antimeridian()
@@ -926,7 +922,7 @@ impl<'a> Navigator<'a> {
 
     /// Template level that fits the local resolution `gsd_m` (m per pixel).
     fn level_for(&self, gsd_m: f64) -> DbLevel {
-        crate::view::level_for(&self.levels, gsd_m).expect("levels")
+        trn_view::visible::level_for(&self.levels, gsd_m).expect("levels")
     }
 
     /// Coarse-to-fine pose from one image; `Err(matches)` when no pose came out.
@@ -974,7 +970,7 @@ impl<'a> Navigator<'a> {
         let fp = if margin_px > 0.0 {
             let metres = margin_px / f * fp.center_range_m;
             debug!("t {t:.3}: acquisition: search radius {radius_full:.0} px, footprint widened by {metres:.0} m");
-            crate::footprint::Footprint { bbox: fp.bbox.grown_m(metres), ..fp }
+            trn_view::footprint::Footprint { bbox: fp.bbox.grown_m(metres), ..fp }
         } else {
             fp
         };
@@ -1048,7 +1044,7 @@ impl<'a> Navigator<'a> {
         &self,
         pyr: &Pyramid,
         pose: &CameraPose,
-        fp: &crate::footprint::Footprint,
+        fp: &trn_view::footprint::Footprint,
         level: usize,
         search: Search,
         prior: Option<&AttitudePrior>,
@@ -1059,7 +1055,7 @@ impl<'a> Navigator<'a> {
         // the centre's and keep each template only where its level fits the
         // local resolution (`view::level_fits`, shared with the server).
         let db_level = self.level_for(fp.center_gsd_m * scale).level;
-        let span = crate::view::LEVEL_SPAN;
+        let span = trn_view::visible::LEVEL_SPAN;
         let (lo, hi) = (db_level.saturating_sub(span), db_level.saturating_add(span));
         let mut templates = Vec::new();
         for l in self.levels.iter().map(|l| l.level).filter(|&l| l >= lo && l <= hi) {
@@ -1069,7 +1065,11 @@ impl<'a> Navigator<'a> {
             })?);
         }
         templates.retain(|t| {
-            crate::view::level_fits(&self.levels, t, crate::view::local_gsd_m(&self.camera, pose, t) * scale)
+            trn_view::visible::level_fits(
+                &self.levels,
+                t,
+                trn_view::visible::local_gsd_m(&self.camera, pose, t) * scale,
+            )
         });
         let chosen = self.spread(&templates, pose, scale, margin_px);
         let img = &pyr.levels[level];
@@ -1186,7 +1186,7 @@ impl<'a> Navigator<'a> {
     /// image at least `MIN_PATCH_PX` level pixels wide.
     fn usable_landmarks(
         &self,
-        fp: &crate::footprint::Footprint,
+        fp: &trn_view::footprint::Footprint,
         pose: &CameraPose,
         k: usize,
         margin_px: f64,
@@ -1206,7 +1206,7 @@ impl<'a> Navigator<'a> {
 
     /// Landmarks in view, spread over image cells, best first, capped. A
     /// template's score is its texture (√Shi–Tomasi), its uniqueness, the
-    /// image area it covers up to [`crate::view::TARGET_PATCH_PX`]² (a
+    /// image area it covers up to [`trn_view::visible::TARGET_PATCH_PX`]² (a
     /// correlation's precision grows with the pixels it sums: a cell takes
     /// the level that fits the resolution before the one finer, whose
     /// templates are four times as many but half as wide) and, unless the
@@ -1234,8 +1234,8 @@ impl<'a> Navigator<'a> {
             let (cx, cy) = (((p.u / w) * gx as f64) as usize, ((p.v / h) * gy as f64) as usize);
             let q = &t.quality;
             let span_px =
-                t.width_px as f64 * t.gsd_m / (crate::view::local_gsd_m(&self.camera, pose, t) * scale);
-            let area = (span_px / crate::view::TARGET_PATCH_PX).min(1.0).powi(2) as f32;
+                t.width_px as f64 * t.gsd_m / (trn_view::visible::local_gsd_m(&self.camera, pose, t) * scale);
+            let area = (span_px / trn_view::visible::TARGET_PATCH_PX).min(1.0).powi(2) as f32;
             let stable = if self.lit_for_flight {
                 1.0
             } else {

@@ -532,7 +532,7 @@ mod tests {
         // An occlusion edge at column 10 (the far slope jumps 500 m away) and
         // sky below row 17: those cells are marched, so every pixel is exact.
         let exact =
-            |i: usize, j: usize| (j < 17).then(|| (i as f64 + if i >= 10 { 500.0 } else { 0.0 }, j as f64));
+            |i: usize, j: usize| (j < 17).then_some((i as f64 + if i >= 10 { 500.0 } else { 0.0 }, j as f64));
         let out = relief_hits(side, 0.1, exact);
         for j in 0..side {
             for i in 0..side {

@@ -3,7 +3,7 @@
 //! over the database, at the level that fits its ground resolution, as the
 //! navigator asks for it), made in-process against the store (SQLite, and the
 //! in-memory catalogue the server uses) and over HTTP against a running
-//! `trn serve` through the navigator's `HttpSource` (binary encoding,
+//! `trn serve` through `trn_client::HttpSource` (binary encoding,
 //! keep-alive, each client its own connection), all decoded into templates.
 //! Prints one JSON line per mode: throughput and latency percentiles.
 //!
@@ -14,13 +14,13 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use trn_camera::{CameraModel, CameraPose};
+use trn_client::HttpSource;
 use trn_geodesy::Geodetic;
 use trn_landmark::GeoBox;
-use trn_navigator::footprint::{footprint, FootprintParams};
-use trn_navigator::http_source::HttpSource;
-use trn_navigator::view::level_for;
-use trn_navigator::LandmarkSource;
 use trn_store::{BboxQuery, LandmarkDb};
+use trn_view::footprint::{footprint, FootprintParams};
+use trn_view::visible::level_for;
+use trn_view::LandmarkSource;
 
 fn arg(args: &[String], name: &str) -> Option<String> {
     args.iter().position(|a| a == name).and_then(|i| args.get(i + 1).cloned())
@@ -28,7 +28,7 @@ fn arg(args: &[String], name: &str) -> Option<String> {
 
 /// Deterministic queries: (bbox, level).
 fn queries(db: &LandmarkDb, n: usize) -> Vec<(GeoBox, u8)> {
-    let levels = trn_navigator::view::DbLevel::of(&db.levels().unwrap());
+    let levels = trn_view::visible::DbLevel::of(&db.levels().unwrap());
     let e = db.extent().unwrap().expect("empty database");
     let h_terrain = 1500.0;
     let cam = CameraModel::from_fov(1024, 768, 32.0);
@@ -38,7 +38,7 @@ fn queries(db: &LandmarkDb, n: usize) -> Vec<(GeoBox, u8)> {
         (s >> 11) as f64 / (1u64 << 53) as f64
     };
     // The resolution at which the finest level's templates span the target size.
-    let finest = levels.first().unwrap().footprint_m / trn_navigator::view::TARGET_PATCH_PX;
+    let finest = levels.first().unwrap().footprint_m / trn_view::visible::TARGET_PATCH_PX;
     let mut out = Vec::with_capacity(n);
     while out.len() < n {
         // Heights whose centre GSD spans the finest 4 levels.

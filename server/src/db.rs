@@ -17,9 +17,8 @@ use tracing::info;
 use trn_landmark::lighting::SunLight;
 use trn_landmark::GeoBox;
 use trn_landmark::Template;
-use trn_navigator::source::{LandmarkSource, SourceError};
-use trn_navigator::view::DbLevel;
 use trn_store::{BboxQuery, Catalogue, LandmarkDb, LevelInfo, StoreError};
+use trn_view::{DbLevel, LandmarkSource, SourceError};
 use utoipa::ToSchema;
 
 use crate::error::{ApiError, ServerError};

@@ -13,17 +13,32 @@
 //! Database queries run on tokio's blocking pool, one pooled connection each.
 //! Every bad input is answered with a 4xx and `{"error": "..."}` naming the
 //! parameter; see `docs/SERVER.md` for the API and the binary encoding.
-//! [`coverage::run_cli`] is `trn coverage`, over a database file or, through
+//! [`coverage_cli::run_cli`] is `trn coverage`, over a database file or, through
 //! [`client`], a running server.
+//!
+//! ```
+//! use trn_server::coverage::{plan_poses, CoverageRequest};
+//!
+//! // A coverage plan (the body of POST /v1/coverage, the file of `trn coverage
+//! // --plan`): a camera and poses. A bad field is named in the answer.
+//! let plan = r#"{"camera": {"width": 640, "height": 480, "hfov_deg": 40},
+//!                "poses": [{"lat_deg": 40.0, "lon_deg": -111.0, "h_m": 10000, "q_ecef_cam": [1, 0, 0, 0]}]}"#;
+//! let req: CoverageRequest = serde_json::from_str(plan).unwrap();
+//! let (camera, poses) = plan_poses(&req).unwrap();
+//! assert_eq!((camera.width, poses.len()), (640, 1));
+//! let bad: CoverageRequest = serde_json::from_str(&plan.replace("40.0", "91.0")).unwrap();
+//! assert!(plan_poses(&bad).unwrap_err().message.contains("lat_deg 91 is not in [-90, 90]"));
+//! ```
 
 // `!(x <= y)` is how these crates reject NaN along with out-of-range values.
-#![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 pub mod api;
 pub mod client;
 pub mod coverage;
+pub mod coverage_cli;
 pub mod db;
 pub mod error;
+pub mod listing;
 
 use std::net::SocketAddr;
 use std::path::PathBuf;

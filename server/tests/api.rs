@@ -356,17 +356,15 @@ fn footprint_and_coverage_count_the_landmarks_in_view() {
     let p: trn_server::coverage::PoseIn = serde_json::from_value(pose.clone()).unwrap();
     let (_, cp) = p.to_pose("pose").unwrap();
     // The fixture's templates are 16 px at 4 m x 2^level.
-    let levels: Vec<trn_navigator::view::DbLevel> = (0..4)
-        .map(|l| trn_navigator::view::DbLevel { level: l, footprint_m: 16.0 * 4.0 * f64::from(1u32 << l) })
+    let levels: Vec<trn_view::visible::DbLevel> = (0..4)
+        .map(|l| trn_view::visible::DbLevel { level: l, footprint_m: 16.0 * 4.0 * f64::from(1u32 << l) })
         .collect();
-    let centre = trn_navigator::view::level_for(&levels, j["center_gsd_m"].as_f64().unwrap()).unwrap().level;
+    let centre = trn_view::visible::level_for(&levels, j["center_gsd_m"].as_f64().unwrap()).unwrap().level;
     let mut want: Vec<i64> = f
         .templates
         .iter()
         .filter(|t| t.level + 2 >= centre && t.level <= centre + 2)
-        .filter(|t| {
-            trn_navigator::view::level_fits(&levels, t, trn_navigator::view::local_gsd_m(&cam, &cp, t))
-        })
+        .filter(|t| trn_view::visible::level_fits(&levels, t, trn_view::visible::local_gsd_m(&cam, &cp, t)))
         .filter(|t| {
             cp.project(&cam, &t.center_ecef())
                 .is_some_and(|q| q.u >= 0.0 && q.v >= 0.0 && q.u < 640.0 && q.v < 480.0)

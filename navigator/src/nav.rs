@@ -777,9 +777,9 @@ impl<'a> Navigator<'a> {
                 let status = if accepted { FixStatus::Fix } else { FixStatus::Propagated };
                 (status, sol.inliers, sol.n_matches, sol.records, sol.guess_px)
             }
-            Err(n) => {
+            Err(NoSolution { matches }) => {
                 self.carry(t, pred);
-                (FixStatus::Propagated, 0, n, Vec::new(), Vec::new())
+                (FixStatus::Propagated, 0, matches, Vec::new(), Vec::new())
             }
         };
         let ms = start.elapsed().as_secs_f64() * 1e3;
@@ -925,7 +925,7 @@ impl<'a> Navigator<'a> {
         trn_view::visible::level_for(&self.levels, gsd_m).expect("levels")
     }
 
-    /// Coarse-to-fine pose from one image; `Err(matches)` when no pose came out.
+    /// Coarse-to-fine pose from one image ([`Self::stage`] per pyramid level).
     fn solve(
         &mut self,
         t: f64,
@@ -933,7 +933,7 @@ impl<'a> Navigator<'a> {
         att_cov: &Matrix3<f64>,
         sigma_m: f64,
         image: GreyImage,
-    ) -> Result<Solution, usize> {
+    ) -> Result<Solution, NoSolution> {
         let att_cov = *att_cov;
         let sigma_rad = att_cov.trace().sqrt();
         let prior = self
@@ -953,7 +953,7 @@ impl<'a> Navigator<'a> {
         )
         .map_err(|e| {
             debug!("t {t:.3}: {e}");
-            0usize
+            NoSolution { matches: 0 }
         })?;
         let sigma_px = f * (sigma_rad + sigma_m / fp.center_range_m);
         // A search wider than half the focal length (a guess kilometres
@@ -1010,21 +1010,21 @@ impl<'a> Navigator<'a> {
                 // inliers), and nothing tells it from the truth.
                 Ok(sol) if margin_px > 0.0 && best.is_none() => {
                     debug!("level {level}: acquisition failed ({} inliers)", sol.inliers);
-                    return Err(sol.n_matches);
+                    return Err(NoSolution { matches: sol.n_matches });
                 }
-                Err(n) if margin_px > 0.0 && best.is_none() => {
-                    debug!("level {level}: acquisition failed ({n} matches)");
-                    return Err(n);
+                Err(e) if margin_px > 0.0 && best.is_none() => {
+                    debug!("level {level}: acquisition failed ({} matches)", e.matches);
+                    return Err(e);
                 }
                 Ok(sol) => {
                     debug!("level {level}: weak solution ({} inliers) not followed", sol.inliers);
                     radius = widened(radius, self.params.max_radius_px);
                 }
-                Err(n) if level == 0 => return Err(n),
+                Err(e) if level == 0 => return Err(e),
                 Err(_) => radius = widened(radius, self.params.max_radius_px),
             }
         }
-        let mut sol = best.ok_or(0usize)?;
+        let mut sol = best.ok_or(NoSolution { matches: 0 })?;
         sol.acquisition = margin_px > 0.0;
         // The refined terrain height helps the next footprint.
         if let Some(h) = sol.mean_landmark_h {
@@ -1039,7 +1039,8 @@ impl<'a> Navigator<'a> {
         Ok(sol)
     }
 
-    /// One pyramid level: select, predict, correlate, RANSAC, refine.
+    /// One pyramid level: select, predict and correlate ([`Self::find_matches`]),
+    /// then RANSAC and refine ([`Self::solve_level`]).
     fn stage(
         &self,
         pyr: &Pyramid,
@@ -1048,7 +1049,21 @@ impl<'a> Navigator<'a> {
         level: usize,
         search: Search,
         prior: Option<&AttitudePrior>,
-    ) -> Result<Solution, usize> {
+    ) -> Result<Solution, NoSolution> {
+        let matches = self.find_matches(pyr, pose, fp, level, search)?;
+        self.solve_level(&matches, level, prior)
+    }
+
+    /// The templates the guess puts in view at pyramid level `level`, each
+    /// searched for in the image within `search.radius` level pixels.
+    fn find_matches(
+        &self,
+        pyr: &Pyramid,
+        pose: &CameraPose,
+        fp: &trn_view::footprint::Footprint,
+        level: usize,
+        search: Search,
+    ) -> Result<Vec<Match>, NoSolution> {
         let Search { radius, margin_px } = search;
         let scale = (1u32 << level) as f64;
         // Oblique views span many ground resolutions: query the levels around
@@ -1061,7 +1076,7 @@ impl<'a> Navigator<'a> {
         for l in self.levels.iter().map(|l| l.level).filter(|&l| l >= lo && l <= hi) {
             templates.extend(self.query(&fp.bbox, l).map_err(|e| {
                 tracing::warn!("landmark query failed: {e}");
-                0usize
+                NoSolution { matches: 0 }
             })?);
         }
         templates.retain(|t| {
@@ -1080,38 +1095,53 @@ impl<'a> Navigator<'a> {
                 predict(t, pose, &self.camera, &self.lut, level, MAX_PATCH_PX, self.params.alpha_max_deg)
             })
             .collect();
-        let mut pixels = Vec::new();
-        let mut points = Vec::new();
-        let mut ids = Vec::new();
-        let mut preds = Vec::new();
-        let mut sigmas = Vec::new();
-        for p in &predicted {
-            let u0 = p.patch_center.u;
-            let v0 = p.patch_center.v;
-            if let Ok(m) = ncc::match_template(&view, &p.patch, u0, v0, radius, &self.params.ncc) {
-                pixels.push(p.observed_center(Pixel::new(m.u, m.v)));
-                points.push(p.center_ecef.0);
-                ids.push(p.template_id);
-                preds.push(p.center_px);
-                // At full resolution; an edge's (infinite along it) capped.
-                sigmas.push((m.sigma_px * scale).min(MAX_PEAK_SIGMA_PX));
-            }
-        }
-        let n = pixels.len();
+        let matches: Vec<Match> = predicted
+            .iter()
+            .filter_map(|p| {
+                let (u0, v0) = (p.patch_center.u, p.patch_center.v);
+                let m = ncc::match_template(&view, &p.patch, u0, v0, radius, &self.params.ncc).ok()?;
+                Some(Match {
+                    pixel: p.observed_center(Pixel::new(m.u, m.v)),
+                    point_ecef: p.center_ecef.0,
+                    landmark: p.template_id,
+                    predicted: p.center_px,
+                    // At full resolution; an edge's (infinite along it) capped.
+                    sigma_px: (m.sigma_px * scale).min(MAX_PEAK_SIGMA_PX),
+                })
+            })
+            .collect();
         debug!(
-            "level {level}: db levels around {db_level}, {} templates, {} predicted, {n} matches, radius {radius}",
+            "level {level}: db levels around {db_level}, {} templates, {} predicted, {} matches, radius {radius}",
             templates.len(),
-            predicted.len()
+            predicted.len(),
+            matches.len()
         );
+        Ok(matches)
+    }
+
+    /// The pose from one pyramid level's matches: P3P RANSAC, then the
+    /// refinement with the gyro's attitude prior (loosened when the image
+    /// disagrees with it), and every match classified against the result.
+    fn solve_level(
+        &self,
+        matches: &[Match],
+        level: usize,
+        prior: Option<&AttitudePrior>,
+    ) -> Result<Solution, NoSolution> {
+        let n = matches.len();
+        let fail = NoSolution { matches: n };
         if n < 4 {
-            return Err(n);
+            return Err(fail);
         }
+        let scale = (1u32 << level) as f64;
+        let pixels: Vec<Pixel> = matches.iter().map(|m| m.pixel).collect();
+        let points: Vec<Vector3<f64>> = matches.iter().map(|m| m.point_ecef).collect();
         let rp = RansacParams {
             threshold_px: self.params.ransac_threshold_px * scale,
             min_inliers: 4,
             ..RansacParams::default()
         };
-        let r = ransac_p3p(&self.camera, &pixels, &points, &rp).ok_or(n)?;
+        let r = ransac_p3p(&self.camera, &pixels, &points, &rp).ok_or(fail)?;
         let in_px: Vec<Pixel> = pixels.iter().zip(&r.inliers).filter(|x| *x.1).map(|x| *x.0).collect();
         let in_pts: Vec<Vector3<f64>> =
             points.iter().zip(&r.inliers).filter(|x| *x.1).map(|x| *x.0).collect();
@@ -1121,7 +1151,7 @@ impl<'a> Navigator<'a> {
             pixel_sigma: REFINE_SIGMA_PX * scale,
             ..RefineOptions::default()
         };
-        let mut refined = refine_pose(&self.camera, &in_px, &in_pts, &r.pose, &opts).ok_or(n)?;
+        let mut refined = refine_pose(&self.camera, &in_px, &in_pts, &r.pose, &opts).ok_or(fail)?;
         let mut prior_loosened = false;
         if let Some(p) = prior {
             // Gated with the floor: the image may disagree with the gyro by what
@@ -1137,7 +1167,7 @@ impl<'a> Navigator<'a> {
                 debug!("level {level}: attitude {d2:.0} chi2 from the gyro prior, prior loosened");
                 let loose = AttitudePrior { covariance: p.covariance * 1e4, ..*p };
                 let opts = RefineOptions { prior: Some(loose), ..opts };
-                refined = refine_pose(&self.camera, &in_px, &in_pts, &refined.pose, &opts).ok_or(n)?;
+                refined = refine_pose(&self.camera, &in_px, &in_pts, &refined.pose, &opts).ok_or(fail)?;
                 prior_loosened = true;
             }
         }
@@ -1146,26 +1176,27 @@ impl<'a> Navigator<'a> {
         let mut records = Vec::with_capacity(n);
         let mut inliers = 0;
         let mut h_sum = 0.0;
-        for i in 0..n {
-            let pred = refined.pose.project(&self.camera, &trn_geodesy::Ecef(points[i]));
-            let res = pred.map_or(f64::INFINITY, |q| q.distance_px(&pixels[i]));
+        for m in matches {
+            let at = trn_geodesy::Ecef(m.point_ecef);
+            let pred = refined.pose.project(&self.camera, &at);
+            let res = pred.map_or(f64::INFINITY, |q| q.distance_px(&m.pixel));
             let inl = res <= thr;
             if inl {
                 inliers += 1;
-                h_sum += trn_geodesy::Ecef(points[i]).to_geodetic().h_m;
+                h_sum += at.to_geodetic().h_m;
             }
-            let q = pred.unwrap_or(preds[i]);
+            let q = pred.unwrap_or(m.predicted);
             records.push(MatchRecord {
                 t: 0.0,
-                landmark: ids[i],
-                u: pixels[i].u,
-                v: pixels[i].v,
+                landmark: m.landmark,
+                u: m.pixel.u,
+                v: m.pixel.v,
                 pred_u: q.u,
                 pred_v: q.v,
                 residual_px: res.min(1e6),
                 inlier: inl,
-                landmark_ecef: Some(trn_geodesy::Ecef(points[i])),
-                sigma_px: Some(sigmas[i]),
+                landmark_ecef: Some(at),
+                sigma_px: Some(m.sigma_px),
             });
         }
         Ok(Solution {
@@ -1305,6 +1336,26 @@ pub fn choose_lighting(suns: &[SunLight], sun: Option<&SunLight>) -> (u8, bool) 
 }
 
 /// A pose from one frame before acceptance.
+/// A template found in the image.
+#[derive(Clone, Copy, Debug)]
+struct Match {
+    /// Where the correlation put the template's centre (full-resolution pixels).
+    pixel: Pixel,
+    point_ecef: Vector3<f64>,
+    landmark: i64,
+    /// Where the frame's guess predicted it.
+    predicted: Pixel,
+    /// The correlation peak's sigma (full-resolution pixels, capped).
+    sigma_px: f64,
+}
+
+/// Why a level or a frame gave no pose: too few matches, or no consensus
+/// among them (`matches` found).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct NoSolution {
+    matches: usize,
+}
+
 struct Solution {
     pose: CameraPose,
     inliers: usize,

@@ -640,66 +640,6 @@ fn run_simulate(a: SimulateArgs) -> anyhow::Result<()> {
 }
 
 fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
-    if let Some(r) = a.rate {
-        anyhow::ensure!(r.is_finite() && r > 0.0, "invalid option --rate: must be images per second > 0");
-    }
-    anyhow::ensure!(
-        a.alpha_max > 0.0 && a.alpha_max < 90.0,
-        "invalid option --alpha-max: must be an angle in (0, 90) degrees"
-    );
-    anyhow::ensure!(a.min_inliers >= 4, "invalid option --min-inliers: must be at least 4");
-    anyhow::ensure!(a.max_landmarks >= 4, "invalid option --max-landmarks: must be at least 4");
-    anyhow::ensure!(
-        a.init_sigma_m.is_finite() && a.init_sigma_m > 0.0,
-        "invalid option --init-sigma-m: must be metres > 0"
-    );
-    anyhow::ensure!(
-        a.init_sigma_deg.is_finite() && a.init_sigma_deg > 0.0 && a.init_sigma_deg <= 90.0,
-        "invalid option --init-sigma-deg: must be degrees in (0, 90]"
-    );
-    anyhow::ensure!(
-        a.gyro_arw.is_finite() && a.gyro_arw > 0.0,
-        "invalid option --gyro-arw: must be deg/sqrt(h) > 0"
-    );
-    anyhow::ensure!(
-        a.gyro_bias.is_finite() && a.gyro_bias > 0.0,
-        "invalid option --gyro-bias: must be deg/h > 0"
-    );
-    for (name, v) in [
-        ("--init-velocity-sigma", a.init_velocity_sigma),
-        ("--accel-bias", a.accel_bias),
-        ("--map-tau", a.map_tau),
-        ("--focal-sigma", a.focal_sigma),
-        ("--principal-point-sigma", a.principal_point_sigma),
-        ("--calibration-frame-sigma", a.calibration_frame_sigma),
-    ] {
-        anyhow::ensure!(v.is_finite() && v > 0.0, "invalid option {name} {v}: must be a number > 0");
-    }
-    anyhow::ensure!(
-        a.time_offset_sigma.is_finite() && a.time_offset_sigma >= 0.0,
-        "invalid option --time-offset-sigma {}: must be milliseconds >= 0",
-        a.time_offset_sigma
-    );
-    anyhow::ensure!(
-        a.map_sigma.is_finite() && a.map_sigma >= 0.0,
-        "invalid option --map-sigma {}: must be metres >= 0",
-        a.map_sigma
-    );
-    anyhow::ensure!(
-        a.landmark_height_sigma.is_finite() && a.landmark_height_sigma >= 0.0,
-        "invalid option --landmark-height-sigma {}: must be metres >= 0",
-        a.landmark_height_sigma
-    );
-    if let Some(dir) = &a.matches_dir {
-        std::fs::create_dir_all(dir)
-            .map_err(|e| anyhow::anyhow!("invalid option --matches-dir {}: {e}", dir.display()))?;
-    }
-    let flight = trn_flight::Flight::open(&a.flight)?;
-    let source: Box<dyn trn_navigator::LandmarkSource> = match (&a.db, &a.server) {
-        (Some(db), _) => Box::new(trn_navigator::DbSource::open(db)?),
-        (None, Some(url)) => Box::new(trn_client::HttpSource::connect(url)?),
-        (None, None) => anyhow::bail!("give --db or --server"),
-    };
     let mut params = trn_navigator::NavParams { use_gyro: !a.no_gyro, ..Default::default() };
     params.alpha_max_deg = a.alpha_max;
     params.min_inliers = a.min_inliers;
@@ -735,6 +675,18 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
         params,
         matches_dir: a.matches_dir.clone(),
         imu_rate: a.imu_rate,
+    };
+    // Every option is checked before any file is opened or written.
+    opts.check()?;
+    if let Some(dir) = &a.matches_dir {
+        std::fs::create_dir_all(dir)
+            .map_err(|e| anyhow::anyhow!("invalid option --matches-dir {}: {e}", dir.display()))?;
+    }
+    let flight = trn_flight::Flight::open(&a.flight)?;
+    let source: Box<dyn trn_navigator::LandmarkSource> = match (&a.db, &a.server) {
+        (Some(db), _) => Box::new(trn_navigator::DbSource::open(db)?),
+        (None, Some(url)) => Box::new(trn_client::HttpSource::connect(url)?),
+        (None, None) => anyhow::bail!("give --db or --server"),
     };
     let bar = indicatif::ProgressBar::new(flight.frames.len() as u64);
     bar.set_style(

@@ -52,7 +52,7 @@ pub enum NavError {
     Source(#[from] SourceError),
     #[error("{}: {reason}", path.display())]
     Picture { path: PathBuf, reason: String },
-    #[error("{option}: {reason}")]
+    #[error("invalid option {option}: {reason}")]
     Option { option: &'static str, reason: String },
 }
 
@@ -68,6 +68,75 @@ pub struct RunOptions {
     /// Also output the inertial filter's pose at every IMU sample
     /// ([`RunOutput::imu_rate`]; needs the filter).
     pub imu_rate: bool,
+}
+
+impl RunOptions {
+    /// Checks every option before any work, naming the `trn navigate` option
+    /// at fault (units as the command line gives them).
+    pub fn check(&self) -> Result<(), NavError> {
+        let bad =
+            |option: &'static str, reason: &str| Err(NavError::Option { option, reason: reason.into() });
+        let positive = |v: f64| v.is_finite() && v > 0.0;
+        let non_negative = |v: f64| v.is_finite() && v >= 0.0;
+        let p = &self.params;
+        if self.rate_hz.is_some_and(|r| !positive(r)) {
+            return bad("--rate", "must be images per second > 0");
+        }
+        if !(p.alpha_max_deg > 0.0 && p.alpha_max_deg < 90.0) {
+            return bad("--alpha-max", "must be an angle in (0, 90) degrees");
+        }
+        if p.min_inliers < 4 {
+            return bad("--min-inliers", "must be at least 4");
+        }
+        if p.max_landmarks < 4 {
+            return bad("--max-landmarks", "must be at least 4");
+        }
+        if !positive(p.init_sigma_m) {
+            return bad("--init-sigma-m", "must be metres > 0");
+        }
+        if !(positive(p.init_sigma_deg) && p.init_sigma_deg <= 90.0) {
+            return bad("--init-sigma-deg", "must be degrees in (0, 90]");
+        }
+        if !positive(p.gyro_arw_deg_sqrt_s) {
+            return bad("--gyro-arw", "must be deg/sqrt(h) > 0");
+        }
+        if !positive(p.gyro_bias_deg_s) {
+            return bad("--gyro-bias", "must be deg/h > 0");
+        }
+        for (option, v) in [
+            ("--init-velocity-sigma", p.init_velocity_sigma_m_s),
+            ("--accel-bias", p.accel_bias_m_s2),
+            ("--map-tau", p.map_tau_s),
+        ] {
+            if !positive(v) {
+                return bad(option, "must be a number > 0");
+            }
+        }
+        if !non_negative(p.time_offset_sigma_s) {
+            return bad("--time-offset-sigma", "must be milliseconds >= 0");
+        }
+        if !non_negative(p.map_sigma_m) {
+            return bad("--map-sigma", "must be metres >= 0");
+        }
+        if let Some(c) = &p.calibration {
+            for (option, v) in [
+                ("--focal-sigma", c.focal_sigma_rel),
+                ("--principal-point-sigma", c.principal_sigma_px),
+                ("--calibration-frame-sigma", c.max_frame_sigma_rel),
+            ] {
+                if !positive(v) {
+                    return bad(option, "must be a number > 0");
+                }
+            }
+            if !non_negative(c.landmark_height_sigma_m) {
+                return bad("--landmark-height-sigma", "must be metres >= 0");
+            }
+        }
+        if self.imu_rate && p.filter == FilterMode::Fixes {
+            return bad("--imu-rate", "needs the inertial filter (--filter tight or loose)");
+        }
+        Ok(())
+    }
 }
 
 /// Summary of a run.
@@ -190,12 +259,7 @@ pub fn run_flight(
     let mut matches = Vec::new();
     let mut covariances = Vec::new();
     let mut imu_rate = Vec::new();
-    if opts.imu_rate && opts.params.filter == FilterMode::Fixes {
-        return Err(NavError::Option {
-            option: "--imu-rate",
-            reason: "needs the inertial filter (--filter tight or loose)".into(),
-        });
-    }
+    opts.check()?;
     let row = |p: FilterPose, status: FixStatus| {
         let position = p.pose.position.to_geodetic();
         let record = NavRecord {
@@ -273,4 +337,39 @@ pub fn run_flight(
         }),
     };
     Ok(RunOutput { records, matches, covariances, imu_rate, report })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn defaults() -> RunOptions {
+        RunOptions { rate_hz: None, params: NavParams::default(), matches_dir: None, imu_rate: false }
+    }
+
+    fn refused(o: &RunOptions) -> &'static str {
+        match o.check() {
+            Err(NavError::Option { option, .. }) => option,
+            other => panic!("accepted: {other:?}"),
+        }
+    }
+
+    #[test]
+    fn options_are_checked_and_named() {
+        assert!(defaults().check().is_ok());
+        let mut o = defaults();
+        o.rate_hz = Some(0.0);
+        assert_eq!(refused(&o), "--rate");
+        let mut o = defaults();
+        o.params.gyro_bias_deg_s = f64::NAN;
+        assert_eq!(refused(&o), "--gyro-bias");
+        let mut o = defaults();
+        o.params.calibration.as_mut().expect("self-calibration is on by default").focal_sigma_rel = 0.0;
+        assert_eq!(refused(&o), "--focal-sigma");
+        let mut o = defaults();
+        (o.imu_rate, o.params.filter) = (true, FilterMode::Fixes);
+        assert_eq!(refused(&o), "--imu-rate");
+        o.params.filter = FilterMode::Loose;
+        assert!(o.check().is_ok());
+    }
 }

@@ -762,7 +762,7 @@ fn run_degrade_dem(a: DegradeDemArgs) -> anyhow::Result<()> {
 }
 
 fn run_synth(a: SynthArgs) -> anyhow::Result<()> {
-    use trn_builder::synth::{write_dem, write_ortho, SynthGrid};
+    use trn_raster::synth::{write_dem, write_ortho, SynthGrid};
     anyhow::ensure!(
         a.relief.is_finite() && a.relief >= 0.0,
         "invalid option --relief: must be a number of metres >= 0"
@@ -774,8 +774,8 @@ fn run_synth(a: SynthArgs) -> anyhow::Result<()> {
         height: a.size,
     };
     let compression = match a.compress {
-        CompressArg::Deflate => trn_builder::synth::Compression::Deflate,
-        CompressArg::Jpeg => trn_builder::synth::Compression::Jpeg,
+        CompressArg::Deflate => trn_raster::synth::Compression::Deflate,
+        CompressArg::Jpeg => trn_raster::synth::Compression::Jpeg,
     };
     write_ortho(&a.ortho, &ortho, 3, a.seed, a.nodata_border, compression)?;
     // DEM at 15x the ortho pixel, covering the same area with a margin.

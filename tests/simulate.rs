@@ -1376,7 +1376,7 @@ fn spectral_weights_make_the_camera_luminance_from_the_ortho_bands() {
         ortho: ortho.clone(),
         ortho_bands: None,
         dems: vec![dem.clone()],
-        dem_vertical: Some(trn_builder::DemVertical::Ellipsoid),
+        dem_vertical: Some(trn_raster::DemVertical::Ellipsoid),
         geoid: None,
     };
     // The ortho's bands read by GDAL: the camera's grey level is their weighted sum.

@@ -1,22 +1,21 @@
 //! Turns a selected candidate into a [`Template`]: terrain from the DEM, then the
 //! template pixels resampled north-up on the local tangent plane.
 
-use gdal::spatial_ref::CoordTransform;
 use nalgebra::{Matrix2, Matrix3, Vector2, Vector3};
 use trn_geodesy::Geodetic;
 use trn_landmark::{GeoBox, HeightGrid, Template, TemplateQuality, TerrainPatch};
 
-use crate::pyramid::Window;
 use crate::select::Candidate;
-use crate::source::PixelToCrs;
+use crate::source::{PixelToCrs, ToWgs84};
 use crate::terrain::Heights;
+use trn_raster::ortho::Window;
 
 /// Maps a window's pixels to WGS84 for one pyramid level of an ortho.
 pub struct WindowGeo<'a> {
     pub to_crs: PixelToCrs,
     /// Native pixels per level pixel (2^p).
     pub scale: f64,
-    pub to_wgs: &'a CoordTransform,
+    pub to_wgs: &'a ToWgs84,
 }
 
 impl WindowGeo<'_> {
@@ -30,8 +29,7 @@ impl WindowGeo<'_> {
             xs.push(cx);
             ys.push(cy);
         }
-        let mut zs = vec![0.0; xs.len()];
-        self.to_wgs.transform_coords(&mut xs, &mut ys, &mut zs).ok()?;
+        self.to_wgs.apply(&mut xs, &mut ys)?;
         Some(xs.into_iter().zip(ys).collect())
     }
 }

@@ -10,7 +10,6 @@ use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Mutex;
 
-use gdal::spatial_ref::CoordTransform;
 use rayon::prelude::*;
 use tracing::info;
 use trn_landmark::lighting::SunLight;
@@ -18,17 +17,19 @@ use trn_landmark::{GeoBox, Template};
 
 use crate::extract::{self, ExtractParams, Reject, WindowGeo};
 use crate::lighting::{self, SunGrid};
-use crate::pyramid::{self, LevelFile, OrthoReader, Window};
+use crate::pyramid::{self, LevelFile};
 use crate::select::{self, CellStats, Core, Fill, LumWindow, SelectParams};
 use crate::sizing::{self, LevelSpec};
 use crate::terrain::{self, DemSampler, DemSpec};
-use crate::{source, BuildError, BuildOptions, LevelTally, OrthoGroup, Progress, Result, FILL_MAX_BOOST};
+use crate::{BuildError, BuildOptions, LevelTally, OrthoGroup, Progress, Result, FILL_MAX_BOOST};
+use trn_raster::ortho::{self, OrthoReader, Window};
+use trn_raster::source::ToWgs84;
 
 /// Per-thread GDAL state for one group.
 struct Worker {
     ortho: OrthoReader,
     dem: DemSampler,
-    to_wgs: CoordTransform,
+    to_wgs: ToWgs84,
     /// Buffers reused tile after tile: no allocation and no fresh pages per tile.
     win: Window,
     select: select::Scratch,
@@ -43,17 +44,10 @@ unsafe impl Send for Worker {}
 
 impl Worker {
     fn new(g: &OrthoGroup, dems: &[DemSpec]) -> Result<Self> {
-        let ds = source::open(&g.path)?;
-        let srs = source::srs_of(&ds, &g.path)?;
-        let wgs = source::wgs84();
-        let err = |e: gdal::errors::GdalError| BuildError::BadRaster {
-            path: g.path.clone(),
-            reason: e.to_string(),
-        };
         Ok(Self {
             ortho: OrthoReader::open(&g.path, &g.lum)?,
             dem: DemSampler::open(dems)?,
-            to_wgs: CoordTransform::new(&srs, &wgs).map_err(err)?,
+            to_wgs: ToWgs84::of_raster(&g.path)?,
             win: Window::default(),
             select: select::Scratch::default(),
             down_lum: Vec::new(),
@@ -260,11 +254,11 @@ pub(crate) fn build_group(
     // to 512 rows assumed where the files' are unknown here.
     let window_h = tiling.dims[0].1 + 2 * margin_of(0);
     let _cache = if g.files.len() == 1 {
-        pyramid::ortho_cache_bytes(&g.path, window_h, workers.len())
+        ortho::ortho_cache_bytes(&g.path, window_h, workers.len())
     } else {
-        pyramid::ortho_cache_bytes(&g.path, window_h.div_ceil(512) * 512, workers.len()).map(|b| 3 * b)
+        ortho::ortho_cache_bytes(&g.path, window_h.div_ceil(512) * 512, workers.len()).map(|b| 3 * b)
     }
-    .map(pyramid::CacheLimit::new);
+    .map(ortho::CacheLimit::new);
     let ctx = GroupCtx { opts, g, suns };
     let mut prev: Option<LevelFile> = None;
     for p in 0..plans.len() {

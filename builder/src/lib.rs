@@ -7,7 +7,8 @@
 //! parallel), scores texture and distinctiveness ([`select`]), cuts the chosen
 //! templates on the local tangent plane with the DEM's terrain ([`extract`]), and
 //! writes the database to a temporary file that is renamed into place only when
-//! everything succeeded.
+//! everything succeeded. The rasters are read through `trn-raster` (the one
+//! owner of GDAL); the tile worker is in `group.rs`.
 //!
 //! ```
 //! use std::path::PathBuf;
@@ -30,9 +31,6 @@ pub mod lighting;
 pub mod pyramid;
 pub mod select;
 pub mod sizing;
-pub mod source;
-pub mod synth;
-pub mod terrain;
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
@@ -51,20 +49,9 @@ use extract::Reject;
 use lighting::SunGrid;
 use select::CellStats;
 use sizing::{GsdRange, LevelSpec, Mission};
-use source::{Luminance, RasterInfo, VerticalDatum};
-use terrain::{DemSampler, DemSpec};
-
-/// Where EGM96 lives on Debian (package proj-data).
-pub const EGM96_GRID: &str = "/usr/share/proj/egm96_15.gtx";
-
-/// Vertical datum of the DEM as the user states it (overrides the file's).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
-pub enum DemVertical {
-    Egm96,
-    Ellipsoid,
-    /// Heights above the geoid of `--geoid GRID`.
-    Geoid,
-}
+use source::{Luminance, RasterInfo};
+use terrain::DemSpec;
+pub use trn_raster::{open_dem_specs, source, terrain, DemVertical, RasterError, EGM96_GRID};
 
 #[derive(Clone, Debug, Serialize)]
 pub struct BuildOptions {
@@ -432,7 +419,7 @@ pub fn build(
         .tempdir_in(&out_dir)
         .map_err(|source| BuildError::Io { path: out_dir.clone(), source })?;
     let groups = group_orthos(ortho_infos, work.path())?;
-    let dems = mosaic_dems(dems, work.path())?;
+    let dems = trn_raster::dem::mosaic_dems(dems, work.path())?;
 
     let base_gsd = opts.base_gsd_m.unwrap_or_else(|| {
         let g = groups.iter().map(|g| g.info.pixel_dx_m.max(g.info.pixel_dy_m)).fold(0.0, f64::max);
@@ -699,117 +686,7 @@ impl Dedupe {
 }
 
 fn open_dems(opts: &BuildOptions) -> Result<Vec<DemSpec>> {
-    open_dem_specs(&opts.dems, opts.dem_vertical, opts.geoid.as_deref())
-}
-
-/// Opens and checks DEMs and decides each one's conversion to ellipsoidal
-/// heights (from the file's CRS, or `vertical` with `geoid`), as `trn build`
-/// does; the simulator uses the same path so both see the same terrain.
-pub fn open_dem_specs(
-    dems: &[PathBuf],
-    dem_vertical: Option<DemVertical>,
-    geoid: Option<&Path>,
-) -> Result<Vec<DemSpec>> {
-    if dem_vertical == Some(DemVertical::Geoid) && geoid.is_none() {
-        return Err(BuildError::Option {
-            option: "--dem-vertical",
-            reason: "geoid needs --geoid GRID".into(),
-        });
-    }
-    let mut geoids: HashMap<PathBuf, Arc<trn_geodesy::GeoidGrid>> = HashMap::new();
-    let mut load = |p: &Path| -> Result<Arc<trn_geodesy::GeoidGrid>> {
-        if let Some(g) = geoids.get(p) {
-            return Ok(g.clone());
-        }
-        let g = Arc::new(terrain::load_geoid(p)?);
-        geoids.insert(p.into(), g.clone());
-        Ok(g)
-    };
-    let mut out = Vec::new();
-    for p in dems {
-        let (ds, info) = source::inspect(p)?;
-        source::check_not_all_nodata(&ds, p)?;
-        let band = ds
-            .rasterband(1)
-            .map_err(|e| BuildError::Read { path: p.clone(), reason: source::gdal_reason(&e, p) })?;
-        let unit = band.unit().to_lowercase();
-        let to_metres = match unit.as_str() {
-            "ft" | "foot" | "feet" => 0.3048,
-            "us-ft" | "us survey foot" | "ftus" => 1200.0 / 3937.0,
-            _ => 1.0,
-        };
-        let declared = source::declared_vertical(&info.srs_wkt)
-            .or_else(|| source::is_ellipsoidal_3d(&info.srs_wkt).then_some(VerticalDatum::Ellipsoid));
-        let datum = match (dem_vertical, &declared) {
-            (Some(DemVertical::Egm96), _) => VerticalDatum::Egm96,
-            (Some(DemVertical::Ellipsoid), _) => VerticalDatum::Ellipsoid,
-            (Some(DemVertical::Geoid), _) => VerticalDatum::Geoid { name: "--geoid".into() },
-            (None, Some(d)) => d.clone(),
-            (None, None) => return Err(BuildError::UnknownVerticalDatum { path: p.clone() }),
-        };
-        if let (Some(flag), Some(d)) = (dem_vertical, &declared) {
-            warn!("{}: file declares {d:?}, --dem-vertical {flag:?} overrides it", p.display());
-        }
-        let source_of_datum = if dem_vertical.is_some() { "--dem-vertical" } else { "the file's CRS" };
-        let geoid = match &datum {
-            VerticalDatum::Ellipsoid => None,
-            VerticalDatum::Egm96 => Some(load(geoid.unwrap_or(Path::new(EGM96_GRID)))?),
-            VerticalDatum::Geoid { name } => match geoid {
-                Some(g) => Some(load(g)?),
-                None => return Err(BuildError::GeoidGridNeeded { path: p.clone(), datum: name.clone() }),
-            },
-        };
-        match &geoid {
-            None => info!("DEM {}: heights are ellipsoidal (from {source_of_datum}); no conversion", p.display()),
-            Some(g) => info!(
-                "DEM {}: heights {datum:?} (from {source_of_datum}) converted to WGS84 ellipsoidal with geoid grid {}",
-                p.display(),
-                g.name
-            ),
-        }
-        out.push(DemSpec { info, nodata: band.no_data_value(), to_metres, geoid });
-    }
-    Ok(out)
-}
-
-/// DEM tiles with one CRS, pixel size, datum and nodata are read as one VRT,
-/// so heights interpolate across tile seams; others are sampled in turn.
-fn mosaic_dems(dems: Vec<DemSpec>, work: &Path) -> Result<Vec<DemSpec>> {
-    let mut buckets: Vec<Vec<DemSpec>> = Vec::new();
-    for d in dems {
-        let same = |o: &DemSpec| {
-            o.info.srs_wkt == d.info.srs_wkt
-                && o.info.to_crs.gt[1] == d.info.to_crs.gt[1]
-                && o.info.to_crs.gt[5] == d.info.to_crs.gt[5]
-                && o.info.to_crs.gt[2] == 0.0
-                && d.info.to_crs.gt[2] == 0.0
-                && o.info.band_type == d.info.band_type
-                && o.nodata.map(f64::to_bits) == d.nodata.map(f64::to_bits)
-                && o.to_metres == d.to_metres
-                && o.geoid.as_ref().map(|g| &g.name) == d.geoid.as_ref().map(|g| &g.name)
-        };
-        match buckets.iter_mut().find(|b| same(&b[0])) {
-            Some(b) => b.push(d),
-            None => buckets.push(vec![d]),
-        }
-    }
-    let mut out = Vec::new();
-    for (i, b) in buckets.into_iter().enumerate() {
-        if b.len() == 1 {
-            out.extend(b);
-            continue;
-        }
-        let vrt = work.join(format!("dem-mosaic-{i}.vrt"));
-        let dss = b.iter().map(|d| source::open(&d.info.path)).collect::<Result<Vec<_>>>()?;
-        gdal::programs::raster::build_vrt(Some(&vrt), &dss, None).map_err(|e| BuildError::Read {
-            path: b[0].info.path.clone(),
-            reason: format!("cannot mosaic DEMs: {}", source::gdal_reason(&e, &b[0].info.path)),
-        })?;
-        let (_, info) = source::inspect(&vrt)?;
-        info!("mosaic of {} DEMs: {}x{} px", b.len(), info.width, info.height);
-        out.push(DemSpec { info, ..b[0].clone() });
-    }
-    Ok(out)
+    Ok(open_dem_specs(&opts.dems, opts.dem_vertical, opts.geoid.as_deref())?)
 }
 
 fn union_text(rasters: &[&RasterInfo]) -> String {
@@ -904,11 +781,7 @@ fn group_orthos(infos: Vec<(RasterInfo, Luminance)>, work: &Path) -> Result<Vec<
         } else {
             // One VRT per mosaic: templates may straddle file seams.
             let vrt = work.join(format!("ortho-mosaic-{i}.vrt"));
-            let dss = sources.iter().map(|p| source::open(p)).collect::<Result<Vec<_>>>()?;
-            gdal::programs::raster::build_vrt(Some(&vrt), &dss, None).map_err(|e| BuildError::Read {
-                path: files[0].clone(),
-                reason: format!("cannot mosaic: {e}"),
-            })?;
+            source::build_vrt(&vrt, &sources, &files[0], "orthos")?;
             let (_, info) = source::inspect(&vrt)?;
             if warped.is_empty() {
                 info!("mosaic of {} orthos: {}x{} px", files.len(), info.width, info.height);
@@ -951,7 +824,7 @@ fn render_suns(opts: &BuildOptions, groups: &[OrthoGroup], dems: &[DemSpec]) -> 
         )
     });
     let spacing_m = dems.iter().map(|d| d.info.pixel_dx_m.min(d.info.pixel_dy_m)).fold(f64::MAX, f64::min);
-    let sampler = DemSampler::open(dems)?;
+    let sampler = terrain::DemSampler::open(dems)?;
     let grids = SunGrid::render(&sampler, &bbox, spacing_m, &opts.suns);
     let (rows, cols) = grids[0].shape();
     info!(

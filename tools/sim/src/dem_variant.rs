@@ -21,7 +21,7 @@ use std::path::{Path, PathBuf};
 use gdal::raster::{Buffer, RasterCreationOptions};
 use gdal::DriverManager;
 use serde::Serialize;
-use trn_builder::source::{self, gdal_reason};
+use trn_raster::source::{self, gdal_reason};
 
 use crate::rng::Rng;
 use crate::SimError;

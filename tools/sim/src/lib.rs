@@ -67,7 +67,7 @@ pub enum SimError {
     #[error("invalid option {option}: {reason}")]
     Option { option: &'static str, reason: String },
     #[error(transparent)]
-    Build(#[from] trn_builder::BuildError),
+    Raster(#[from] trn_raster::RasterError),
     #[error(transparent)]
     Flight(#[from] FlightError),
     #[error("{}: {reason}", path.display())]

@@ -6,10 +6,10 @@ use std::path::{Path, PathBuf};
 
 use gdal::spatial_ref::CoordTransform;
 use tracing::info;
-use trn_builder::pyramid::OrthoReader;
-use trn_builder::source::{self, luminance_for};
-use trn_builder::terrain::DemSampler;
-use trn_builder::DemVertical;
+use trn_raster::ortho::OrthoReader;
+use trn_raster::source::{self, luminance_for};
+use trn_raster::terrain::DemSampler;
+use trn_raster::DemVertical;
 
 use crate::scene::{LatLonGrid, Level, OrthoPyramid, Scene, Terrain};
 use crate::SimError;
@@ -138,7 +138,7 @@ fn ortho_transform(
 /// Ellipsoidal heights on a latitude/longitude grid over the ortho's
 /// footprint (plus a margin), at half the finest DEM spacing.
 fn load_terrain(src: &SceneSources, ortho: &source::RasterInfo) -> Result<Terrain, SimError> {
-    let specs = trn_builder::open_dem_specs(&src.dems, src.dem_vertical, src.geoid.as_deref())?;
+    let specs = trn_raster::open_dem_specs(&src.dems, src.dem_vertical, src.geoid.as_deref())?;
     let sampler = DemSampler::open(&specs)?;
     let dem_m = specs.iter().map(|s| s.info.pixel_dx_m.min(s.info.pixel_dy_m)).fold(f64::INFINITY, f64::min);
     let e = &ortho.extent;
@@ -154,7 +154,7 @@ fn load_terrain(src: &SceneSources, ortho: &source::RasterInfo) -> Result<Terrai
     let rows = ((span_lat + 2.0 * margin_lat) / dlat).ceil() as usize + 1;
     let cols = ((span_lon + 2.0 * margin_lon) / dlon).ceil() as usize + 1;
     let (north, west) = (e.max_lat_deg + margin_lat, e.min_lon_deg - margin_lon);
-    let heights = trn_builder::terrain::latlon_heights(&sampler, north, west, dlat, dlon, rows, cols);
+    let heights = trn_raster::terrain::latlon_heights(&sampler, north, west, dlat, dlon, rows, cols);
     Terrain::new(heights).ok_or_else(|| SimError::Input {
         path: src.dems[0].clone(),
         reason: format!("the DEM does not cover the ortho ({})", src.ortho.display()),

@@ -10,7 +10,7 @@ use gdal::Dataset;
 use trn_geodesy::metres_per_degree;
 use trn_landmark::GeoBox;
 
-use crate::error::{BuildError, Result};
+use crate::error::{RasterError, Result};
 
 /// GDAL's affine pixel -> CRS transform; (0, 0) is the top-left corner of the top-left pixel.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -51,6 +51,39 @@ pub struct RasterInfo {
     pub pixel_dy_m: f64,
 }
 
+/// A raster's CRS to WGS84 longitude and latitude (degrees, in that order).
+/// Holds a GDAL transformation: one thread uses it at a time.
+pub struct ToWgs84(CoordTransform);
+
+impl ToWgs84 {
+    /// From the CRS of the raster at `path`.
+    pub fn of_raster(path: &Path) -> Result<Self> {
+        let ds = open(path)?;
+        let srs = srs_of(&ds, path)?;
+        CoordTransform::new(&srs, &wgs84())
+            .map(Self)
+            .map_err(|e| RasterError::BadRaster { path: path.into(), reason: e.to_string() })
+    }
+
+    /// Transforms CRS coordinates `(xs, ys)` in place to (lon, lat); `None`
+    /// when a point does not transform.
+    pub fn apply(&self, xs: &mut [f64], ys: &mut [f64]) -> Option<()> {
+        let mut zs = vec![0.0; xs.len()];
+        self.0.transform_coords(xs, ys, &mut zs).ok()
+    }
+}
+
+/// Writes a VRT at `out` reading the rasters `paths` as one mosaic
+/// (`gdalbuildvrt`); an error names `blame` (the user's file) and says
+/// `what` was being mosaicked.
+pub fn build_vrt(out: &Path, paths: &[PathBuf], blame: &Path, what: &str) -> Result<()> {
+    let dss = paths.iter().map(|p| open(p)).collect::<Result<Vec<_>>>()?;
+    gdal::programs::raster::build_vrt(Some(out), &dss, None).map(|_| ()).map_err(|e| RasterError::Read {
+        path: blame.into(),
+        reason: format!("cannot mosaic {what}: {}", gdal_reason(&e, blame)),
+    })
+}
+
 pub fn wgs84() -> SpatialRef {
     let mut srs = SpatialRef::from_epsg(4326).expect("EPSG:4326 is in every PROJ database");
     srs.set_axis_mapping_strategy(AxisMappingStrategy::TraditionalGisOrder);
@@ -59,7 +92,7 @@ pub fn wgs84() -> SpatialRef {
 
 pub fn open(path: &Path) -> Result<Dataset> {
     if !path.exists() {
-        return Err(BuildError::Open { path: path.into(), reason: "no such file".into() });
+        return Err(RasterError::Open { path: path.into(), reason: "no such file".into() });
     }
     quietly(|| Dataset::open(path)).map_err(|e| {
         let reason = match &e {
@@ -69,7 +102,7 @@ pub fn open(path: &Path) -> Result<Dataset> {
             }
             _ => gdal_reason(&e, path),
         };
-        BuildError::Open { path: path.into(), reason }
+        RasterError::Open { path: path.into(), reason }
     })
 }
 
@@ -121,9 +154,9 @@ fn quietly<T>(f: impl FnOnce() -> T) -> T {
 }
 
 pub fn srs_of(ds: &Dataset, path: &Path) -> Result<SpatialRef> {
-    let mut srs = ds.spatial_ref().map_err(|_| BuildError::NoGeoreference { path: path.into() })?;
+    let mut srs = ds.spatial_ref().map_err(|_| RasterError::NoGeoreference { path: path.into() })?;
     if srs.to_wkt().map(|w| w.is_empty()).unwrap_or(true) {
-        return Err(BuildError::NoGeoreference { path: path.into() });
+        return Err(RasterError::NoGeoreference { path: path.into() });
     }
     srs.set_axis_mapping_strategy(AxisMappingStrategy::TraditionalGisOrder);
     Ok(srs)
@@ -134,18 +167,18 @@ pub fn inspect(path: &Path) -> Result<(Dataset, RasterInfo)> {
     let ds = open(path)?;
     let (width, height) = ds.raster_size();
     if width == 0 || height == 0 || ds.raster_count() == 0 {
-        return Err(BuildError::BadRaster {
+        return Err(RasterError::BadRaster {
             path: path.into(),
             reason: "raster has no pixels or no bands".into(),
         });
     }
-    let gt = ds.geo_transform().map_err(|_| BuildError::NoGeoreference { path: path.into() })?;
+    let gt = ds.geo_transform().map_err(|_| RasterError::NoGeoreference { path: path.into() })?;
     if gt == [0.0, 1.0, 0.0, 0.0, 0.0, 1.0] {
-        return Err(BuildError::NoGeoreference { path: path.into() });
+        return Err(RasterError::NoGeoreference { path: path.into() });
     }
     let srs = srs_of(&ds, path)?;
     let to_wgs = CoordTransform::new(&srs, &wgs84())
-        .map_err(|e| BuildError::BadRaster { path: path.into(), reason: format!("CRS not usable: {e}") })?;
+        .map_err(|e| RasterError::BadRaster { path: path.into(), reason: format!("CRS not usable: {e}") })?;
     let to_crs = PixelToCrs { gt };
     // Densified outline: UTM edges are curved in lat/lon.
     let n = 32;
@@ -165,14 +198,14 @@ pub fn inspect(path: &Path) -> Result<(Dataset, RasterInfo)> {
         }
     }
     let mut zs = vec![0.0; xs.len()];
-    to_wgs.transform_coords(&mut xs, &mut ys, &mut zs).map_err(|e| BuildError::BadRaster {
+    to_wgs.transform_coords(&mut xs, &mut ys, &mut zs).map_err(|e| RasterError::BadRaster {
         path: path.into(),
         reason: format!("cannot transform to WGS84: {e}"),
     })?;
     let extent = GeoBox::around(xs.iter().copied().zip(ys.iter().copied()))
-        .ok_or_else(|| BuildError::BadRaster { path: path.into(), reason: "empty outline".into() })?;
+        .ok_or_else(|| RasterError::BadRaster { path: path.into(), reason: "empty outline".into() })?;
     if !(extent.min_lat_deg >= -90.0 && extent.max_lat_deg <= 90.0 && extent.min_lon_deg >= -360.0) {
-        return Err(BuildError::BadRaster {
+        return Err(RasterError::BadRaster {
             path: path.into(),
             reason: format!("footprint out of range: {extent:?}"),
         });
@@ -183,7 +216,7 @@ pub fn inspect(path: &Path) -> Result<(Dataset, RasterInfo)> {
     let mut px: Vec<f64> = pts.iter().map(|p| p.0).collect();
     let mut py: Vec<f64> = pts.iter().map(|p| p.1).collect();
     let mut pz = vec![0.0; 3];
-    to_wgs.transform_coords(&mut px, &mut py, &mut pz).map_err(|e| BuildError::BadRaster {
+    to_wgs.transform_coords(&mut px, &mut py, &mut pz).map_err(|e| RasterError::BadRaster {
         path: path.into(),
         reason: format!("cannot transform to WGS84: {e}"),
     })?;
@@ -214,13 +247,13 @@ pub fn inspect(path: &Path) -> Result<(Dataset, RasterInfo)> {
 pub fn warp_onto_grid(srcs: &[RasterInfo], onto: &RasterInfo, out: &Path) -> Result<()> {
     let g = onto.to_crs.gt;
     let first = &srcs[0].path;
-    let bad = |reason: String| BuildError::Read { path: first.clone(), reason };
+    let bad = |reason: String| RasterError::Read { path: first.clone(), reason };
     // Geotransforms are in x = easting/longitude order whatever the CRS's axes.
     let gis = |wkt: &str, path: &Path| {
         let mut srs =
             SpatialRef::from_wkt(wkt).map_err(|e| bad(format!("CRS of {}: {e}", path.display())))?;
         srs.set_axis_mapping_strategy(AxisMappingStrategy::TraditionalGisOrder);
-        Ok::<_, BuildError>(srs)
+        Ok::<_, RasterError>(srs)
     };
     let to = gis(&onto.srs_wkt, &onto.path)?;
     let (mut xmin, mut ymin, mut xmax, mut ymax) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
@@ -312,7 +345,7 @@ const FULL_CHECK_PIXELS: usize = 64 << 20;
 /// fails when a block cannot be read (a truncated or damaged file) or when no
 /// pixel is valid (nodata, NaN, or masked out by an alpha/dataset mask).
 pub fn check_not_all_nodata(ds: &Dataset, path: &Path) -> Result<()> {
-    let read_err = |e: GdalError| BuildError::Read {
+    let read_err = |e: GdalError| RasterError::Read {
         path: path.into(),
         reason: format!("damaged or truncated pixel data ({})", gdal_reason(&e, path)),
     };
@@ -350,7 +383,7 @@ pub fn check_not_all_nodata(ds: &Dataset, path: &Path) -> Result<()> {
                 .enumerate()
                 .any(|(k, &v)| is_valid(v, masked.as_ref().map(|m| m.data()[k])));
             if any {
-                return Ok::<bool, BuildError>(true);
+                return Ok::<bool, RasterError>(true);
             }
         }
         Ok(false)
@@ -384,12 +417,12 @@ pub fn check_not_all_nodata(ds: &Dataset, path: &Path) -> Result<()> {
             }
             oy += n;
         }
-        Ok::<(), BuildError>(())
+        Ok::<(), RasterError>(())
     })?;
     if any_valid {
         Ok(())
     } else {
-        Err(BuildError::AllNodata { path: path.into() })
+        Err(RasterError::AllNodata { path: path.into() })
     }
 }
 
@@ -421,13 +454,13 @@ pub fn luminance_for(ds: &Dataset, info: &RasterInfo, bands_opt: Option<&[usize]
     let chosen: Vec<usize> = match bands_opt {
         Some(b) => {
             if let Some(&bad) = b.iter().find(|&&i| i == 0 || i > n) {
-                return Err(BuildError::Option {
+                return Err(RasterError::Option {
                     option: "--ortho-bands",
                     reason: format!("band {bad} does not exist in {} ({n} bands)", path.display()),
                 });
             }
             if b.len() != 1 && b.len() != 3 {
-                return Err(BuildError::Option { option: "--ortho-bands", reason: "give 1 band (grey) or 3 (red,green,blue)".into() });
+                return Err(RasterError::Option { option: "--ortho-bands", reason: "give 1 band (grey) or 3 (red,green,blue)".into() });
             }
             b.to_vec()
         }
@@ -443,7 +476,7 @@ pub fn luminance_for(ds: &Dataset, info: &RasterInfo, bands_opt: Option<&[usize]
                 }
             }
             _ => {
-                return Err(BuildError::BadRaster {
+                return Err(RasterError::BadRaster {
                     path: path.clone(),
                     reason: format!(
                         "{n} bands: say which make the luminance with --ortho-bands (one grey band, or red,green,blue, e.g. 3,2,1)"
@@ -466,15 +499,15 @@ pub fn luminance_for(ds: &Dataset, info: &RasterInfo, bands_opt: Option<&[usize]
         for &(b, w) in &weights {
             let band = ds
                 .rasterband(b)
-                .map_err(|e| BuildError::Read { path: path.clone(), reason: gdal_reason(&e, path) })?;
+                .map_err(|e| RasterError::Read { path: path.clone(), reason: gdal_reason(&e, path) })?;
             let mm = band
                 .compute_raster_min_max(true)
-                .map_err(|_| BuildError::AllNodata { path: path.clone() })?;
+                .map_err(|_| RasterError::AllNodata { path: path.clone() })?;
             lo += w as f64 * mm.min;
             hi += w as f64 * mm.max;
         }
         if hi <= lo {
-            return Err(BuildError::BadRaster {
+            return Err(RasterError::BadRaster {
                 path: path.clone(),
                 reason: "constant image: no texture".into(),
             });

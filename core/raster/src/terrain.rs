@@ -9,12 +9,12 @@ use gdal::Dataset;
 use trn_geodesy::GeoidGrid;
 use trn_landmark::GeoBox;
 
-use crate::error::{BuildError, Result};
+use crate::error::{RasterError, Result};
 use crate::source::{self, RasterInfo};
 
 /// Loads a geoid undulation grid (e.g. `/usr/share/proj/egm96_15.gtx`) with GDAL.
 pub fn load_geoid(path: &Path) -> Result<GeoidGrid> {
-    let err = |reason: String| BuildError::Geoid { path: path.into(), reason };
+    let err = |reason: String| RasterError::Geoid { path: path.into(), reason };
     if !path.exists() {
         let hint =
             if path == Path::new(crate::EGM96_GRID) { " (Debian's proj-data package ships it)" } else { "" };
@@ -154,7 +154,7 @@ impl DemSampler {
         for s in specs {
             let ds = source::open(&s.info.path)?;
             let srs = source::srs_of(&ds, &s.info.path)?;
-            let ct = CoordTransform::new(&source::wgs84(), &srs).map_err(|e| BuildError::BadRaster {
+            let ct = CoordTransform::new(&source::wgs84(), &srs).map_err(|e| RasterError::BadRaster {
                 path: s.info.path.clone(),
                 reason: crate::source::gdal_reason(&e, &s.info.path),
             })?;

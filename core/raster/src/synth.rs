@@ -7,7 +7,7 @@ use gdal::raster::{Buffer, RasterCreationOptions};
 use gdal::spatial_ref::SpatialRef;
 use gdal::DriverManager;
 
-use crate::error::{BuildError, Result};
+use crate::error::{RasterError, Result};
 
 /// Deterministic value noise with octaves (fBm) on a lattice, in [0, 1].
 #[derive(Clone, Copy, Debug)]
@@ -122,7 +122,7 @@ fn write_raster<T: gdal::raster::GdalType + Copy + Default + Send>(
     value: impl Fn(usize, usize, usize) -> T + Sync,
 ) -> Result<()> {
     use rayon::prelude::*;
-    let err = |e: gdal::errors::GdalError| BuildError::Read { path: path.into(), reason: e.to_string() };
+    let err = |e: gdal::errors::GdalError| RasterError::Read { path: path.into(), reason: e.to_string() };
     let driver = DriverManager::get_driver_by_name("GTiff").map_err(err)?;
     let mut opts = RasterCreationOptions::new();
     let mut pairs =

@@ -24,6 +24,8 @@ pub enum RasterError {
     Read { path: PathBuf, reason: String },
     #[error("{}: {source}", path.display())]
     Io { path: PathBuf, source: std::io::Error },
+    #[error("{}: cannot write: {reason}", path.display())]
+    Write { path: PathBuf, reason: String },
 }
 
 pub type Result<T> = std::result::Result<T, RasterError>;

@@ -73,6 +73,95 @@ impl ToWgs84 {
     }
 }
 
+/// WGS84 longitude and latitude (degrees) to a raster's CRS. Holds a GDAL
+/// transformation: one thread uses it at a time.
+pub struct FromWgs84(CoordTransform);
+
+impl FromWgs84 {
+    /// To the CRS of the raster at `path`.
+    pub fn of_raster(path: &Path) -> Result<Self> {
+        let ds = open(path)?;
+        let srs = srs_of(&ds, path)?;
+        CoordTransform::new(&wgs84(), &srs)
+            .map(Self)
+            .map_err(|e| RasterError::BadRaster { path: path.into(), reason: gdal_reason(&e, path) })
+    }
+
+    /// Transforms (lon, lat) in `(xs, ys)` in place to CRS coordinates;
+    /// `None` when a point does not transform.
+    pub fn apply(&self, xs: &mut [f64], ys: &mut [f64]) -> Option<()> {
+        let mut zs = vec![0.0; xs.len()];
+        self.0.transform_coords(xs, ys, &mut zs).ok()
+    }
+}
+
+/// Band 1 of a raster in full, as f64 with nodata and non-finite values NaN,
+/// and the grid it lies on.
+pub struct Band1 {
+    pub info: RasterInfo,
+    /// Row-major, `info.width * info.height`.
+    pub values: Vec<f64>,
+    pub nodata: Option<f64>,
+}
+
+/// Reads band 1 of the raster at `path` in full (see [`Band1`]).
+pub fn read_band1(path: &Path) -> Result<Band1> {
+    let (ds, info) = inspect(path)?;
+    let read = |e: GdalError| RasterError::Read { path: path.into(), reason: gdal_reason(&e, path) };
+    let band = ds.rasterband(1).map_err(read)?;
+    let nodata = band.no_data_value();
+    let buf = band
+        .read_as::<f64>((0, 0), (info.width, info.height), (info.width, info.height), None)
+        .map_err(read)?;
+    let values = buf
+        .data()
+        .iter()
+        .map(|&v| if nodata.is_some_and(|nd| v == nd) || !v.is_finite() { f64::NAN } else { v })
+        .collect();
+    Ok(Band1 { info, values, nodata })
+}
+
+/// Writes a one-band f32 GeoTIFF (tiled, DEFLATE) at `out` atomically (a
+/// temporary file next to it, renamed on success): `values` row-major, NaN
+/// written as `nodata`, on the grid of geotransform `gt` in the CRS `wkt`.
+pub fn write_f32_geotiff(
+    out: &Path,
+    (width, height): (usize, usize),
+    values: &[f64],
+    gt: [f64; 6],
+    wkt: &str,
+    nodata: f64,
+) -> Result<()> {
+    let err = |reason: String| RasterError::Write { path: out.into(), reason };
+    let parent = out.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let tmp = tempfile::Builder::new()
+        .prefix(".trn-raster-")
+        .suffix(".tif")
+        .tempfile_in(parent)
+        .map_err(|e| err(e.to_string()))?;
+    {
+        let driver = gdal::DriverManager::get_driver_by_name("GTiff").map_err(|e| err(e.to_string()))?;
+        let mut opts = gdal::raster::RasterCreationOptions::new();
+        for (k, v) in [("COMPRESS", "DEFLATE"), ("PREDICTOR", "3"), ("TILED", "YES")] {
+            opts.set_name_value(k, v).map_err(|e| err(e.to_string()))?;
+        }
+        let mut ds = driver
+            .create_with_band_type_with_options::<f32, _>(tmp.path(), width, height, 1, &opts)
+            .map_err(|e| err(e.to_string()))?;
+        ds.set_geo_transform(&gt).map_err(|e| err(e.to_string()))?;
+        ds.set_projection(wkt).map_err(|e| err(e.to_string()))?;
+        let mut band = ds.rasterband(1).map_err(|e| err(e.to_string()))?;
+        band.set_no_data_value(Some(nodata)).map_err(|e| err(e.to_string()))?;
+        let data: Vec<f32> =
+            values.iter().map(|&v| if v.is_finite() { v as f32 } else { nodata as f32 }).collect();
+        let mut buf = gdal::raster::Buffer::new((width, height), data);
+        band.write((0, 0), (width, height), &mut buf).map_err(|e| err(e.to_string()))?;
+        ds.close().map_err(|e| err(e.to_string()))?;
+    }
+    tmp.persist(out).map_err(|e| err(e.error.to_string()))?;
+    Ok(())
+}
+
 /// Writes a VRT at `out` reading the rasters `paths` as one mosaic
 /// (`gdalbuildvrt`); an error names `blame` (the user's file) and says
 /// `what` was being mosaicked.

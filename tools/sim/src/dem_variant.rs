@@ -16,12 +16,10 @@
 //! included), with its nodata value, written to a temporary file renamed over
 //! `out` when complete.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
-use gdal::raster::{Buffer, RasterCreationOptions};
-use gdal::DriverManager;
 use serde::Serialize;
-use trn_raster::source::{self, gdal_reason};
+use trn_raster::source;
 
 use crate::rng::Rng;
 use crate::SimError;
@@ -138,17 +136,7 @@ pub fn degrade_dem(opts: &DemVariantOptions) -> Result<DemVariantReport, SimErro
     }
     check("--noise-m", opts.noise_rms_m, opts.noise_rms_m >= 0.0, ">= 0")?;
     check("--noise-scale-m", opts.noise_scale_m, opts.noise_scale_m >= 0.0, ">= 0")?;
-    let (ds, info) = source::inspect(&opts.dem)?;
-    let band = ds.rasterband(1).map_err(|e| bad(&gdal_reason(&e, &opts.dem)))?;
-    let nodata = band.no_data_value();
-    let buf: Buffer<f64> = band
-        .read_as::<f64>((0, 0), (info.width, info.height), (info.width, info.height), None)
-        .map_err(|e| bad(&gdal_reason(&e, &opts.dem)))?;
-    let heights_m = buf
-        .data()
-        .iter()
-        .map(|&v| if nodata.is_some_and(|nd| v == nd) || !v.is_finite() { f64::NAN } else { v })
-        .collect();
+    let source::Band1 { info, values: heights_m, nodata } = source::read_band1(&opts.dem)?;
     let grid = HeightGrid { width: info.width, height: info.height, heights_m };
     if grid.heights_m.iter().all(|v| v.is_nan()) {
         return Err(bad("every height is nodata"));
@@ -169,12 +157,12 @@ pub fn degrade_dem(opts: &DemVariantOptions) -> Result<DemVariantReport, SimErro
     }
     let noise_rms_m = (noise.iter().map(|n| n * n).sum::<f64>() / noise.len().max(1) as f64).sqrt();
 
-    let mut gt = ds.geo_transform().map_err(|e| bad(&gdal_reason(&e, &opts.dem)))?;
+    let mut gt = info.to_crs.gt;
     for k in [1, 2, 4, 5] {
         gt[k] *= factor as f64;
     }
     let nd_out = nodata.unwrap_or(-32768.0);
-    write_geotiff(&opts.out, &out, gt, &ds.projection(), nd_out)?;
+    source::write_f32_geotiff(&opts.out, (out.width, out.height), &out.heights_m, gt, &info.srs_wkt, nd_out)?;
     Ok(DemVariantReport {
         out: opts.out.clone(),
         input_cell_m,
@@ -184,43 +172,6 @@ pub fn degrade_dem(opts: &DemVariantOptions) -> Result<DemVariantReport, SimErro
         height: out.height,
         noise_rms_m,
     })
-}
-
-fn write_geotiff(
-    out: &Path,
-    grid: &HeightGrid,
-    gt: [f64; 6],
-    wkt: &str,
-    nodata: f64,
-) -> Result<(), SimError> {
-    let err = |reason: String| SimError::Output { path: out.into(), reason };
-    let parent = out.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    let tmp = tempfile::Builder::new()
-        .prefix(".trn-dem-")
-        .suffix(".tif")
-        .tempfile_in(parent)
-        .map_err(|e| err(e.to_string()))?;
-    {
-        let driver = DriverManager::get_driver_by_name("GTiff").map_err(|e| err(e.to_string()))?;
-        let mut opts = RasterCreationOptions::new();
-        for (k, v) in [("COMPRESS", "DEFLATE"), ("PREDICTOR", "3"), ("TILED", "YES")] {
-            opts.set_name_value(k, v).map_err(|e| err(e.to_string()))?;
-        }
-        let mut ds = driver
-            .create_with_band_type_with_options::<f32, _>(tmp.path(), grid.width, grid.height, 1, &opts)
-            .map_err(|e| err(e.to_string()))?;
-        ds.set_geo_transform(&gt).map_err(|e| err(e.to_string()))?;
-        ds.set_projection(wkt).map_err(|e| err(e.to_string()))?;
-        let mut band = ds.rasterband(1).map_err(|e| err(e.to_string()))?;
-        band.set_no_data_value(Some(nodata)).map_err(|e| err(e.to_string()))?;
-        let data: Vec<f32> =
-            grid.heights_m.iter().map(|&v| if v.is_finite() { v as f32 } else { nodata as f32 }).collect();
-        let mut buf = Buffer::new((grid.width, grid.height), data);
-        band.write((0, 0), (grid.width, grid.height), &mut buf).map_err(|e| err(e.to_string()))?;
-        ds.close().map_err(|e| err(e.to_string()))?;
-    }
-    tmp.persist(out).map_err(|e| err(e.error.to_string()))?;
-    Ok(())
 }
 
 #[cfg(test)]

@@ -4,7 +4,6 @@
 
 use std::path::{Path, PathBuf};
 
-use gdal::spatial_ref::CoordTransform;
 use tracing::info;
 use trn_raster::ortho::OrthoReader;
 use trn_raster::source::{self, luminance_for};
@@ -71,7 +70,7 @@ pub fn load_scene(src: &SceneSources, spectral_weights: Option<[f32; 3]>) -> Res
         }
     }
     let ortho = OrthoPyramid::new(Level { width: w, height: h, lum: level0 });
-    let to_ortho = ortho_transform(&ds, &info, &src.ortho)?;
+    let to_ortho = ortho_transform(&info, &src.ortho)?;
     let ortho_gsd_m = (info.pixel_dx_m * info.pixel_dy_m).sqrt();
     let terrain = load_terrain(src, &info)?;
     info!(
@@ -92,14 +91,8 @@ pub fn load_scene(src: &SceneSources, spectral_weights: Option<[f32; 3]>) -> Res
 
 /// Latitude/longitude -> ortho pixel-centre position on a grid over the
 /// ortho's footprint.
-fn ortho_transform(
-    ds: &gdal::Dataset,
-    info: &source::RasterInfo,
-    path: &Path,
-) -> Result<LatLonGrid<[f64; 2]>, SimError> {
-    let srs = source::srs_of(ds, path)?;
-    let ct = CoordTransform::new(&source::wgs84(), &srs)
-        .map_err(|e| SimError::Input { path: path.into(), reason: source::gdal_reason(&e, path) })?;
+fn ortho_transform(info: &source::RasterInfo, path: &Path) -> Result<LatLonGrid<[f64; 2]>, SimError> {
+    let ct = source::FromWgs84::of_raster(path)?;
     let e = &info.extent;
     let n = TRANSFORM_NODES;
     let dlat = (e.max_lat_deg - e.min_lat_deg) / (n - 1) as f64;
@@ -112,9 +105,10 @@ fn ortho_transform(
             ys.push(e.max_lat_deg - r as f64 * dlat);
         }
     }
-    let mut zs = vec![0.0; xs.len()];
-    ct.transform_coords(&mut xs, &mut ys, &mut zs)
-        .map_err(|e| SimError::Input { path: path.into(), reason: source::gdal_reason(&e, path) })?;
+    ct.apply(&mut xs, &mut ys).ok_or_else(|| SimError::Input {
+        path: path.into(),
+        reason: "the ortho's footprint does not transform from WGS84 to its CRS".into(),
+    })?;
     let values = xs
         .iter()
         .zip(&ys)

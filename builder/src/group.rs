@@ -6,8 +6,7 @@
 //! there ([`run_tile`], returning a [`TileOutput`]).
 
 use std::collections::HashMap;
-use std::path::Path;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::Ordering;
 use std::sync::Mutex;
 
 use rayon::prelude::*;
@@ -21,7 +20,7 @@ use crate::pyramid::{self, LevelFile};
 use crate::select::{self, CellStats, Core, Fill, LumWindow, SelectParams};
 use crate::sizing::{self, LevelSpec};
 use crate::terrain::{self, DemSampler, DemSpec};
-use crate::{BuildError, BuildOptions, LevelTally, OrthoGroup, Progress, Result, FILL_MAX_BOOST};
+use crate::{BuildCtx, BuildError, BuildOptions, LevelTally, OrthoGroup, Progress, Result, FILL_MAX_BOOST};
 use trn_raster::ortho::{self, OrthoReader, Window};
 use trn_raster::source::ToWgs84;
 
@@ -219,19 +218,12 @@ struct Pass<'a> {
 
 /// Selects over one ortho group, streaming templates to `sink`; the tallies
 /// per level of the ladder.
-#[allow(clippy::too_many_arguments)]
 pub(crate) fn build_group(
-    opts: &BuildOptions,
+    ctx: &BuildCtx,
     g: &OrthoGroup,
-    dems: &[DemSpec],
-    suns: &[SunGrid],
-    base_gsd: f64,
-    specs: &[LevelSpec],
-    work: &Path,
-    cancel: &AtomicBool,
     sink: &(dyn Fn(Vec<Template>) -> Result<()> + Sync),
-    progress: &(dyn Fn(Progress) + Sync),
 ) -> Result<Vec<LevelTally>> {
+    let BuildCtx { opts, dems, suns, base_gsd, specs, work, cancel, progress } = *ctx;
     let plans = level_plans(opts, g, base_gsd, specs);
     let mut tallies = vec![LevelTally::default(); specs.len()];
     for l in plans.iter().flatten() {
@@ -259,7 +251,7 @@ pub(crate) fn build_group(
         ortho::ortho_cache_bytes(&g.path, window_h.div_ceil(512) * 512, workers.len()).map(|b| 3 * b)
     }
     .map(ortho::CacheLimit::new);
-    let ctx = GroupCtx { opts, g, suns };
+    let group_ctx = GroupCtx { opts, g, suns };
     let mut prev: Option<LevelFile> = None;
     for p in 0..plans.len() {
         let next = match p + 1 < plans.len() {
@@ -283,7 +275,7 @@ pub(crate) fn build_group(
                     *guard = Some(Worker::new(g, dems)?);
                 }
                 let worker = guard.as_mut().expect("worker was just created");
-                let out = run_tile(&ctx, worker, &pass, tile)?;
+                let out = run_tile(&group_ctx, worker, &pass, tile)?;
                 if !out.templates.is_empty() {
                     sink(out.templates)?;
                 }

@@ -483,8 +483,17 @@ pub fn build(
         }
         Ok(writer.finish()?)
     });
-    let selected =
-        select_all(opts, &groups, &dems, &suns, base_gsd, &specs, work.path(), cancel, &tx, progress);
+    let ctx = BuildCtx {
+        opts,
+        dems: &dems,
+        suns: &suns,
+        base_gsd,
+        specs: &specs,
+        work: work.path(),
+        cancel,
+        progress,
+    };
+    let selected = select_all(&ctx, &groups, &tx);
     drop(tx);
     let tallies = match selected {
         Ok(r) => r,
@@ -574,24 +583,31 @@ pub fn build(
     Ok(report)
 }
 
+/// What every ortho group of a build shares.
+struct BuildCtx<'a> {
+    opts: &'a BuildOptions,
+    dems: &'a [DemSpec],
+    suns: &'a [SunGrid],
+    /// Ground sample distance of the ladder's first step (m).
+    base_gsd: f64,
+    specs: &'a [LevelSpec],
+    /// The build's temporary folder (pyramid levels, mosaics).
+    work: &'a Path,
+    cancel: &'a AtomicBool,
+    progress: &'a (dyn Fn(Progress) + Sync),
+}
+
 /// Runs the selection over every ortho group, streaming templates to the
 /// writer; from the second group on, a template closer to one of an earlier
 /// group's (same level) than [`Dedupe`] allows is a duplicate where mosaics of
 /// different bands overlap, and is dropped (the earlier group's is kept).
-#[allow(clippy::too_many_arguments)]
 fn select_all(
-    opts: &BuildOptions,
+    ctx: &BuildCtx,
     groups: &[OrthoGroup],
-    dems: &[DemSpec],
-    suns: &[SunGrid],
-    base_gsd: f64,
-    specs: &[LevelSpec],
-    work: &Path,
-    cancel: &AtomicBool,
     tx: &SyncSender<Vec<Template>>,
-    progress: &(dyn Fn(Progress) + Sync),
 ) -> Result<Vec<LevelTally>> {
-    let mut tallies = vec![LevelTally::default(); specs.len()];
+    let opts = ctx.opts;
+    let mut tallies = vec![LevelTally::default(); ctx.specs.len()];
     let mut seen = Dedupe::default();
     let dropped = std::sync::atomic::AtomicUsize::new(0);
     for g in groups {
@@ -615,7 +631,7 @@ fn select_all(
             }
             tx.send(batch).map_err(|_| BuildError::WriterStopped)
         };
-        let tally = group::build_group(opts, g, dems, suns, base_gsd, specs, work, cancel, &sink, progress)?;
+        let tally = group::build_group(ctx, g, &sink)?;
         for (a, b) in tallies.iter_mut().zip(&tally) {
             a.merge(b);
         }

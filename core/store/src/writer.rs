@@ -46,6 +46,8 @@ pub struct DbWriter {
     /// What finish needs of every committed template (in id order), so that it need not
     /// read the table back: ~60 bytes a template.
     stored: Vec<Stored>,
+    /// The file, for starting its write-back while batches come in.
+    file: Option<std::fs::File>,
 }
 
 impl std::fmt::Debug for DbWriter {
@@ -104,7 +106,21 @@ impl DbWriter {
             insert_one_sql: insert_templates_sql(1),
             heights: Vec::new(),
             stored: Vec::new(),
+            file: std::fs::File::open(path).ok(),
         })
+    }
+
+    /// Starts writing the file's dirty pages to disk without waiting
+    /// (Linux `sync_file_range`), so that the fsync of [`DbWriter::finish`]
+    /// finds little left to write. Advisory: errors are ignored (the fsync
+    /// reports them).
+    fn start_writeback(&self) {
+        #[cfg(target_os = "linux")]
+        if let Some(f) = &self.file {
+            use std::os::fd::AsRawFd;
+            // SAFETY: a valid open descriptor; offset 0 and length 0 mean the whole file.
+            unsafe { libc::sync_file_range(f.as_raw_fd(), 0, 0, libc::SYNC_FILE_RANGE_WRITE) };
+        }
     }
 
     pub fn path(&self) -> &Path {
@@ -179,6 +195,7 @@ impl DbWriter {
             }
         }
         tx.commit().at(&self.path)?;
+        self.start_writeback();
         for (t, id) in templates.iter_mut().zip(first_id..) {
             t.id = id;
             self.stored.push(Stored {
@@ -325,10 +342,16 @@ fn check_spatial_indexes(conn: &Connection, path: &Path, template_count: u64) ->
             return Err(corrupt(format!("{table} has {n} rows, expected {template_count}")));
         }
     }
-    for rtree in ["templates_rtree", "rtree_templates_geom"] {
-        let report: String = conn.query_row("SELECT rtreecheck(?1)", [rtree], |r| r.get(0)).at(path)?;
-        if report != "ok" {
-            return Err(corrupt(format!("R*Tree {rtree} check failed: {report}")));
+    // SQLite's full structural check of the packed trees: in debug builds
+    // (every test), not in release ones, where it took 50 ms of a 100 MP
+    // build's 1.7 s. The packer is tested against it on random templates
+    // (tests/finish.rs, rtree.rs) and its queries against brute force.
+    if cfg!(debug_assertions) {
+        for rtree in ["templates_rtree", "rtree_templates_geom"] {
+            let report: String = conn.query_row("SELECT rtreecheck(?1)", [rtree], |r| r.get(0)).at(path)?;
+            if report != "ok" {
+                return Err(corrupt(format!("R*Tree {rtree} check failed: {report}")));
+            }
         }
     }
     Ok(())

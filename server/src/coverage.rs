@@ -563,3 +563,158 @@ pub fn map_area(report: &CoverageReport) -> Option<GeoBox> {
     let (lon, lat) = (|x: f64| x.clamp(-180.0, 180.0), |x: f64| x.clamp(-90.0, 90.0));
     Some(GeoBox::new(lon(b.min_lon_deg), lat(b.min_lat_deg), lon(b.max_lon_deg), lat(b.max_lat_deg)))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use trn_landmark::{HeightGrid, TemplateQuality, TerrainPatch};
+    use trn_store::LevelInfo;
+    use trn_view::SourceError;
+
+    /// One level of 32 px templates at 10 m (320 m footprints), on the ground
+    /// (h = 0) every 0.005 deg of a box, and nothing else.
+    struct Grid {
+        templates: Vec<Template>,
+    }
+
+    impl Grid {
+        fn new(lon: (f64, f64), lat: (f64, f64)) -> Self {
+            let mut templates = Vec::new();
+            let step = 0.005;
+            let (nx, ny) = (((lon.1 - lon.0) / step) as usize, ((lat.1 - lat.0) / step) as usize);
+            for j in 0..=ny {
+                for i in 0..=nx {
+                    let t = Template {
+                        id: templates.len() as i64 + 1,
+                        level: 0,
+                        gsd_m: 10.0,
+                        width_px: 32,
+                        height_px: 32,
+                        center: Geodetic::new(lat.0 + j as f64 * step, lon.0 + i as f64 * step, 0.0),
+                        footprint: GeoBox::new(0.0, 0.0, 0.0, 0.0),
+                        terrain: TerrainPatch {
+                            plane_normal_enu: [0.0, 0.0, 1.0],
+                            plane_residual_rms_m: 0.0,
+                            height_grid: HeightGrid { n: 2, spacing_m: 320.0, heights_m: vec![0.0; 4] },
+                        },
+                        quality: TemplateQuality {
+                            shi_tomasi: 10.0,
+                            contrast_std: 20.0,
+                            second_peak_ncc: 0.5,
+                            shading_share: 0.0,
+                        },
+                        source: 0,
+                        lighting: 0,
+                        pixels: vec![128; 32 * 32],
+                    };
+                    let corners = t.footprint_corners();
+                    let footprint = GeoBox::around(corners.iter().map(|g| (g.lon_deg, g.lat_deg))).unwrap();
+                    templates.push(Template { footprint, ..t });
+                }
+            }
+            Self { templates }
+        }
+    }
+
+    impl LandmarkSource for Grid {
+        fn levels(&self) -> Result<Vec<trn_store::LevelInfo>, SourceError> {
+            let extent = GeoBox::around(self.templates.iter().flat_map(|t| {
+                let f = t.footprint;
+                [(f.min_lon_deg, f.min_lat_deg), (f.max_lon_deg, f.max_lat_deg)]
+            }))
+            .unwrap();
+            Ok(vec![LevelInfo {
+                level: 0,
+                gsd_m: 10.0,
+                template_px: 32,
+                count: self.templates.len() as u64,
+                extent,
+            }])
+        }
+
+        fn query(&self, bbox: &GeoBox, level: u8) -> Result<Vec<Template>, SourceError> {
+            Ok(self
+                .templates
+                .iter()
+                .filter(|t| t.level == level && t.footprint.intersects(bbox))
+                .cloned()
+                .collect())
+        }
+    }
+
+    /// A nadir pass at 10 km from over the landmarks (west) to beyond them (east).
+    fn plan() -> CoverageRequest {
+        serde_json::from_value(serde_json::json!({
+            "camera": {"width": 1024, "height": 768, "hfov_deg": 40.0},
+            "waypoints": [{"lat_deg": 40.0, "lon_deg": -111.0, "h_m": 10000.0},
+                          {"lat_deg": 40.0, "lon_deg": -110.5, "h_m": 10000.0}],
+            "attitude": {"tilt_deg": 0.0},
+            "step_m": 2000.0,
+            "threshold": 60,
+            "terrain_h_m": 0.0
+        }))
+        .unwrap()
+    }
+
+    #[test]
+    fn coverage_counts_the_landmarks_in_view_and_finds_the_stretch_without() {
+        let source = Grid::new((-111.05, -110.85), (39.95, 40.05));
+        let levels = DbLevel::of(&source.levels().unwrap());
+        let r = coverage_query(&source, &levels, &plan()).unwrap();
+        // 0.5 deg of longitude at 40 deg N is 42.6 km: a point every 2 km or less.
+        assert!(r.points.len() >= 22, "{}", r.points.len());
+        // Over the grid a 7.3 x 5.5 km view holds ~130 of its 430 x 560 m cells.
+        let first = &r.points[0];
+        assert!(first.landmarks > 100 && first.center_level == Some(0), "{first:?}");
+        // East of -110.8 (the grid's edge plus half a view) nothing is in view:
+        // one stretch from where the count drops below 60 to the end.
+        let far: Vec<_> = r.points.iter().filter(|p| p.lon_deg > -110.78).collect();
+        assert!(!far.is_empty() && far.iter().all(|p| p.landmarks == 0), "{far:?}");
+        assert_eq!(r.stretches.len(), 1, "{:?}", r.stretches);
+        let s = &r.stretches[0];
+        assert_eq!(s.end_index, r.points.len() - 1);
+        assert!(r.points[..s.start_index].iter().all(|p| p.landmarks >= 60));
+        assert!(r.points[s.start_index..].iter().all(|p| p.landmarks < 60));
+        assert_eq!((s.min_landmarks, r.min_landmarks), (0, 0));
+        let below = r.points.len() - s.start_index;
+        assert!((r.share_below - below as f64 / r.points.len() as f64).abs() < 1e-12);
+        // The stretch's length is the distance along the points it spans.
+        let (a, b) = (&r.points[s.start_index], &r.points[s.end_index]);
+        let ends = Geodetic::new(a.lat_deg, a.lon_deg, a.h_m)
+            .to_ecef()
+            .distance_m(&Geodetic::new(b.lat_deg, b.lon_deg, b.h_m).to_ecef());
+        assert!((s.length_m - ends).abs() < 0.01 * ends, "{} {ends}", s.length_m);
+        // GeoJSON: the trajectory, the stretch, and every point.
+        let g = to_geojson(&r);
+        assert_eq!(g["features"].as_array().unwrap().len(), 1 + 1 + r.points.len());
+        assert_eq!(g["features"][1]["properties"]["kind"], "below_threshold");
+        // The map's area holds every point's footprint box.
+        let area = map_area(&r).unwrap();
+        assert!(r.points.iter().filter_map(|p| p.bbox).all(|b| area.contains(b.min_lon_deg, b.min_lat_deg)));
+    }
+
+    #[test]
+    fn bad_plans_are_named_and_a_source_failure_is_a_503() {
+        let mut req = plan();
+        req.waypoints.as_mut().unwrap()[1].lat_deg = 95.0;
+        let source = Grid::new((-111.05, -110.85), (39.95, 40.05));
+        let levels = DbLevel::of(&source.levels().unwrap());
+        let e = coverage_query(&source, &levels, &req).unwrap_err();
+        assert!(e.message.contains("lat_deg 95 is not in [-90, 90]"), "{}", e.message);
+        assert_eq!(e.status, axum::http::StatusCode::UNPROCESSABLE_ENTITY);
+
+        struct Broken;
+        impl LandmarkSource for Broken {
+            fn levels(&self) -> Result<Vec<LevelInfo>, SourceError> {
+                Err(SourceError("db.gpkg: disk I/O error".into()))
+            }
+            fn query(&self, _: &GeoBox, _: u8) -> Result<Vec<Template>, SourceError> {
+                Err(SourceError("db.gpkg: disk I/O error".into()))
+            }
+        }
+        // The database's failure, not the client's: retry elsewhere (never a 500).
+        let e = coverage_query(&Broken, &levels, &plan()).unwrap_err();
+        assert_eq!(e.status, axum::http::StatusCode::SERVICE_UNAVAILABLE);
+        assert!(e.message.contains("db.gpkg"), "{}", e.message);
+    }
+}

@@ -762,32 +762,20 @@ fn run_degrade_dem(a: DegradeDemArgs) -> anyhow::Result<()> {
 }
 
 fn run_synth(a: SynthArgs) -> anyhow::Result<()> {
-    use trn_raster::synth::{write_dem, write_ortho, SynthGrid};
-    anyhow::ensure!(
-        a.relief.is_finite() && a.relief >= 0.0,
-        "invalid option --relief: must be a number of metres >= 0"
-    );
-    let ortho = SynthGrid {
-        epsg: 32613,
-        geo_transform: [a.east, a.gsd, 0.0, a.north, 0.0, -a.gsd],
-        width: a.size,
-        height: a.size,
+    let scene = trn_raster::synth::SynthScene {
+        size: a.size,
+        gsd_m: a.gsd,
+        east_m: a.east,
+        north_m: a.north,
+        seed: a.seed,
+        relief_m: a.relief,
+        nodata_border: a.nodata_border,
+        compression: match a.compress {
+            CompressArg::Deflate => trn_raster::synth::Compression::Deflate,
+            CompressArg::Jpeg => trn_raster::synth::Compression::Jpeg,
+        },
     };
-    let compression = match a.compress {
-        CompressArg::Deflate => trn_raster::synth::Compression::Deflate,
-        CompressArg::Jpeg => trn_raster::synth::Compression::Jpeg,
-    };
-    write_ortho(&a.ortho, &ortho, 3, a.seed, a.nodata_border, compression)?;
-    // DEM at 15x the ortho pixel, covering the same area with a margin.
-    let dem_gsd = a.gsd * 15.0;
-    let n = (a.size as f64 * a.gsd / dem_gsd).ceil() as usize + 4;
-    let dem = SynthGrid {
-        epsg: 32613,
-        geo_transform: [a.east - 2.0 * dem_gsd, dem_gsd, 0.0, a.north + 2.0 * dem_gsd, 0.0, -dem_gsd],
-        width: n,
-        height: n,
-    };
-    write_dem(&a.dem, &dem, a.seed + 100, 1500.0, a.relief)?;
+    scene.write(&a.ortho, &a.dem)?;
     println!("wrote {} and {}", a.ortho.display(), a.dem.display());
     Ok(())
 }

@@ -106,6 +106,62 @@ pub fn write_ortho(
 }
 
 /// A DEM: rolling fBm hills, heights in metres, Float32.
+/// A synthetic scene as `trn synth` writes it: a `size x size` RGB ortho of
+/// `gsd_m` pixels in UTM 13N (EPSG:32613) from (`east_m`, `north_m`), and a
+/// DEM of 15 ortho pixels per cell over the same area with a two-cell margin,
+/// heights 1500 m plus up to `relief_m` of hills (ellipsoidal).
+#[derive(Clone, Copy, Debug)]
+pub struct SynthScene {
+    pub size: usize,
+    pub gsd_m: f64,
+    pub east_m: f64,
+    pub north_m: f64,
+    pub seed: u64,
+    pub relief_m: f64,
+    /// Nodata pixels around the ortho's edge.
+    pub nodata_border: usize,
+    pub compression: Compression,
+}
+
+impl SynthScene {
+    /// Checks the scene, naming the `trn synth` option at fault.
+    pub fn check(&self) -> Result<()> {
+        let bad = |option, reason: &str| Err(RasterError::Option { option, reason: reason.into() });
+        if !(self.relief_m.is_finite() && self.relief_m >= 0.0) {
+            return bad("--relief", "must be a number of metres >= 0");
+        }
+        if !(self.gsd_m.is_finite() && self.gsd_m > 0.0) {
+            return bad("--gsd", "must be metres > 0");
+        }
+        if self.size == 0 {
+            return bad("--size", "must be at least 1 pixel");
+        }
+        Ok(())
+    }
+
+    /// Writes the ortho and the DEM (checked first).
+    pub fn write(&self, ortho: &Path, dem: &Path) -> Result<()> {
+        self.check()?;
+        let (e, n, gsd) = (self.east_m, self.north_m, self.gsd_m);
+        let grid = SynthGrid {
+            epsg: 32613,
+            geo_transform: [e, gsd, 0.0, n, 0.0, -gsd],
+            width: self.size,
+            height: self.size,
+        };
+        write_ortho(ortho, &grid, 3, self.seed, self.nodata_border, self.compression)?;
+        let dem_gsd = gsd * 15.0;
+        let cells = (self.size as f64 * gsd / dem_gsd).ceil() as usize + 4;
+        let dem_grid = SynthGrid {
+            epsg: 32613,
+            geo_transform: [e - 2.0 * dem_gsd, dem_gsd, 0.0, n + 2.0 * dem_gsd, 0.0, -dem_gsd],
+            width: cells,
+            height: cells,
+        };
+        write_dem(dem, &dem_grid, self.seed + 100, 1500.0, self.relief_m)
+    }
+}
+
 pub fn write_dem(path: &Path, grid: &SynthGrid, seed: u64, base_m: f64, relief_m: f64) -> Result<()> {
     let hills = Fbm { seed, octaves: 4, scale: 64.0 };
     write_raster::<f32>(path, grid, 1, Some(-9999.0), Compression::Deflate, |x, y, _| {

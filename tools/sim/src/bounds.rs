@@ -19,7 +19,7 @@
 //! below every node: a ray leaving the grid only sees the surface drop.
 //! Pure math on the height grid: no I/O.
 
-use crate::scene::LatLonGrid;
+use trn_landmark::grid::LatLonGrid;
 
 /// Cells per block side, finest level first: a fine level to skip close
 /// over ridges, coarser ones to cross valleys and descend from high above.

@@ -58,26 +58,45 @@ enum VerticalArg {
     Geoid,
 }
 
+/// The elevation models, as `trn build` and `trn simulate` take them
+/// ([`trn_raster::DemInputs`]).
 #[derive(clap::Args)]
-struct BuildArgs {
-    /// Orthoimage(s): any GDAL raster, any CRS; several files form a mosaic.
-    #[arg(long = "ortho", required = true, num_args = 1..)]
-    orthos: Vec<PathBuf>,
-    /// Elevation model(s): any GDAL raster, any CRS.
+struct DemArgs {
+    /// Elevation model(s): any GDAL raster, any CRS; tiles of one grid are read as one mosaic.
     #[arg(long = "dem", required = true, num_args = 1..)]
     dems: Vec<PathBuf>,
-    /// Output database (replaced atomically when the build succeeds).
-    #[arg(long)]
-    out: PathBuf,
-    /// Bands making the luminance: one (grey) or three (red,green,blue), e.g. 3,2,1.
-    #[arg(long, value_delimiter = ',')]
-    ortho_bands: Option<Vec<usize>>,
     /// Vertical datum of the DEM heights when the file does not say (or to override it).
     #[arg(long, value_enum)]
     dem_vertical: Option<VerticalArg>,
     /// Geoid grid (GDAL-readable: .gtx, .tif) for --dem-vertical geoid; default for EGM96 is Debian's.
     #[arg(long)]
     geoid: Option<PathBuf>,
+}
+
+impl DemArgs {
+    fn inputs(self) -> trn_raster::DemInputs {
+        let vertical = self.dem_vertical.map(|v| match v {
+            VerticalArg::Egm96 => DemVertical::Egm96,
+            VerticalArg::Ellipsoid => DemVertical::Ellipsoid,
+            VerticalArg::Geoid => DemVertical::Geoid,
+        });
+        trn_raster::DemInputs { files: self.dems, vertical, geoid: self.geoid }
+    }
+}
+
+#[derive(clap::Args)]
+struct BuildArgs {
+    /// Orthoimage(s): any GDAL raster, any CRS; several files form a mosaic.
+    #[arg(long = "ortho", required = true, num_args = 1..)]
+    orthos: Vec<PathBuf>,
+    #[command(flatten)]
+    dem: DemArgs,
+    /// Output database (replaced atomically when the build succeeds).
+    #[arg(long)]
+    out: PathBuf,
+    /// Bands making the luminance: one (grey) or three (red,green,blue), e.g. 3,2,1.
+    #[arg(long, value_delimiter = ',')]
+    ortho_bands: Option<Vec<usize>>,
     /// Largest template side in pixels (coarse levels).
     #[arg(long, default_value_t = 32)]
     template_size: u32,
@@ -217,9 +236,8 @@ struct SimulateArgs {
     /// Orthoimage the camera sees (any GDAL raster, any CRS).
     #[arg(long)]
     ortho: PathBuf,
-    /// Elevation model(s): any GDAL raster, any CRS.
-    #[arg(long = "dem", required = true, num_args = 1..)]
-    dems: Vec<PathBuf>,
+    #[command(flatten)]
+    dem: DemArgs,
     /// Scenario (JSON): trajectory, camera, IMU, initial error, realism.
     #[arg(long)]
     scenario: PathBuf,
@@ -229,12 +247,6 @@ struct SimulateArgs {
     /// Bands making the luminance, e.g. 3,2,1 (as trn build).
     #[arg(long, value_delimiter = ',')]
     ortho_bands: Option<Vec<usize>>,
-    /// Vertical datum of the DEM heights when the file does not say (as trn build).
-    #[arg(long, value_enum)]
-    dem_vertical: Option<VerticalArg>,
-    /// Geoid grid for --dem-vertical geoid.
-    #[arg(long)]
-    geoid: Option<PathBuf>,
     /// Stop the flight after this many seconds.
     #[arg(long)]
     duration: Option<f64>,
@@ -446,10 +458,9 @@ fn main() -> ExitCode {
 fn run_build(a: BuildArgs) -> anyhow::Result<()> {
     set_threads(a.threads)?;
     let cancel = cancel_flag()?;
-    let mut o = BuildOptions::new(a.orthos, a.dems, a.out);
+    let mut o = BuildOptions::new(a.orthos, Vec::new(), a.out);
+    o.dem = a.dem.inputs();
     o.ortho_bands = a.ortho_bands;
-    o.dem_vertical = vertical(a.dem_vertical);
-    o.geoid = a.geoid;
     o.template_size = a.template_size;
     o.min_template_size = a.min_template_size;
     o.spacing_px = a.spacing;
@@ -588,14 +599,6 @@ fn parse_sun(s: &str) -> Result<trn_landmark::lighting::SunLight, String> {
     Ok(sun)
 }
 
-fn vertical(v: Option<VerticalArg>) -> Option<DemVertical> {
-    v.map(|v| match v {
-        VerticalArg::Egm96 => DemVertical::Egm96,
-        VerticalArg::Ellipsoid => DemVertical::Ellipsoid,
-        VerticalArg::Geoid => DemVertical::Geoid,
-    })
-}
-
 /// Sizes rayon's pool when `--threads` is given (default: all cores).
 fn set_threads(threads: Option<u32>) -> anyhow::Result<()> {
     if let Some(n) = threads {
@@ -623,13 +626,7 @@ fn run_simulate(a: SimulateArgs) -> anyhow::Result<()> {
     }
     let cancel = cancel_flag()?;
     let opts = trn_sim::SimOptions {
-        sources: trn_sim::SceneSources {
-            ortho: a.ortho,
-            ortho_bands: a.ortho_bands,
-            dems: a.dems,
-            dem_vertical: vertical(a.dem_vertical),
-            geoid: a.geoid,
-        },
+        sources: trn_sim::SceneSources { ortho: a.ortho, ortho_bands: a.ortho_bands, dem: a.dem.inputs() },
         scenario: a.scenario,
         out: a.out,
         max_duration_s: a.duration,

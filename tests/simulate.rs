@@ -1375,9 +1375,11 @@ fn spectral_weights_make_the_camera_luminance_from_the_ortho_bands() {
     let sources = trn_sim::SceneSources {
         ortho: ortho.clone(),
         ortho_bands: None,
-        dems: vec![dem.clone()],
-        dem_vertical: Some(trn_raster::DemVertical::Ellipsoid),
-        geoid: None,
+        dem: trn_raster::DemInputs {
+            files: vec![dem.clone()],
+            vertical: Some(trn_raster::DemVertical::Ellipsoid),
+            geoid: None,
+        },
     };
     // The ortho's bands read by GDAL: the camera's grey level is their weighted sum.
     let ds = Dataset::open(&ortho).unwrap();

@@ -51,17 +51,16 @@ use select::CellStats;
 use sizing::{GsdRange, LevelSpec, Mission};
 use source::{Luminance, RasterInfo};
 use terrain::DemSpec;
-pub use trn_raster::{open_dem_specs, source, terrain, DemVertical, RasterError, EGM96_GRID};
+pub use trn_raster::{open_dem_specs, source, terrain, DemInputs, DemVertical, RasterError, EGM96_GRID};
 
 #[derive(Clone, Debug, Serialize)]
 pub struct BuildOptions {
     pub orthos: Vec<PathBuf>,
-    pub dems: Vec<PathBuf>,
+    #[serde(flatten)]
+    pub dem: DemInputs,
     pub out: PathBuf,
     /// 1-based bands making the luminance: one (grey) or three (red, green, blue).
     pub ortho_bands: Option<Vec<usize>>,
-    pub dem_vertical: Option<DemVertical>,
-    pub geoid: Option<PathBuf>,
     /// Largest template side (pixels): coarse levels' templates.
     pub template_size: u32,
     /// Smallest template side (pixels): the finest level holds templates of
@@ -121,11 +120,9 @@ impl BuildOptions {
     pub fn new(orthos: Vec<PathBuf>, dems: Vec<PathBuf>, out: PathBuf) -> Self {
         Self {
             orthos,
-            dems,
+            dem: DemInputs::new(dems),
             out,
             ortho_bands: None,
-            dem_vertical: None,
-            geoid: None,
             template_size: 32,
             min_template_size: 12,
             spacing_px: None,
@@ -182,7 +179,7 @@ impl BuildOptions {
         if self.orthos.is_empty() {
             return bad("--ortho", "give at least one orthoimage");
         }
-        if self.dems.is_empty() {
+        if self.dem.files.is_empty() {
             return bad("--dem", "give at least one DEM");
         }
         if !(8..=512).contains(&self.template_size) {
@@ -241,7 +238,7 @@ impl BuildOptions {
         if !(self.max_second_peak > 0.0 && self.max_second_peak <= 1.0) {
             return bad("--max-second-peak", "must be in (0, 1]");
         }
-        if self.dem_vertical == Some(DemVertical::Geoid) && self.geoid.is_none() {
+        if self.dem.vertical == Some(DemVertical::Geoid) && self.dem.geoid.is_none() {
             return bad("--dem-vertical", "geoid needs --geoid GRID");
         }
         if self.max_shading_share.is_some_and(|v| !(v.is_finite() && (0.0..=1.0).contains(&v))) {
@@ -702,7 +699,7 @@ impl Dedupe {
 }
 
 fn open_dems(opts: &BuildOptions) -> Result<Vec<DemSpec>> {
-    Ok(open_dem_specs(&opts.dems, opts.dem_vertical, opts.geoid.as_deref())?)
+    Ok(opts.dem.open()?)
 }
 
 fn union_text(rasters: &[&RasterInfo]) -> String {

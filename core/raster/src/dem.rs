@@ -26,6 +26,32 @@ pub enum DemVertical {
     Geoid,
 }
 
+/// The elevation models of a build or a simulation, as the user gives them
+/// (`--dem`, `--dem-vertical`, `--geoid`; serialized under those names).
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct DemInputs {
+    /// Elevation model files, any GDAL raster in any CRS (tiles of one grid
+    /// are read as one mosaic).
+    #[serde(rename = "dems")]
+    pub files: Vec<PathBuf>,
+    /// The heights' vertical datum where the files do not say (or to override them).
+    #[serde(rename = "dem_vertical")]
+    pub vertical: Option<DemVertical>,
+    /// Geoid grid for [`DemVertical::Geoid`] (for EGM96, default [`EGM96_GRID`]).
+    pub geoid: Option<PathBuf>,
+}
+
+impl DemInputs {
+    pub fn new(files: Vec<PathBuf>) -> Self {
+        Self { files, ..Self::default() }
+    }
+
+    /// Opens and checks every file ([`open_dem_specs`]).
+    pub fn open(&self) -> Result<Vec<DemSpec>> {
+        open_dem_specs(&self.files, self.vertical, self.geoid.as_deref())
+    }
+}
+
 /// Opens and checks DEMs and decides each one's conversion to ellipsoidal
 /// heights (from the file's CRS, or `vertical` with `geoid`), as `trn build`
 /// does; the simulator uses the same path so both see the same terrain.

@@ -32,5 +32,5 @@ pub mod source;
 pub mod synth;
 pub mod terrain;
 
-pub use dem::{open_dem_specs, DemVertical, EGM96_GRID};
+pub use dem::{open_dem_specs, DemInputs, DemVertical, EGM96_GRID};
 pub use error::{RasterError, Result};

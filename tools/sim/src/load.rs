@@ -8,7 +8,7 @@ use tracing::info;
 use trn_raster::ortho::OrthoReader;
 use trn_raster::source::{self, luminance_for};
 use trn_raster::terrain::DemSampler;
-use trn_raster::DemVertical;
+use trn_raster::DemInputs;
 
 use crate::scene::{LatLonGrid, Level, OrthoPyramid, Scene, Terrain};
 use crate::SimError;
@@ -19,9 +19,7 @@ pub struct SceneSources {
     pub ortho: PathBuf,
     /// Bands making the luminance (as `trn build --ortho-bands`).
     pub ortho_bands: Option<Vec<usize>>,
-    pub dems: Vec<PathBuf>,
-    pub dem_vertical: Option<DemVertical>,
-    pub geoid: Option<PathBuf>,
+    pub dem: DemInputs,
 }
 
 /// Nodes of the latitude/longitude -> ortho pixel grid per side: exact PROJ
@@ -132,7 +130,7 @@ fn ortho_transform(info: &source::RasterInfo, path: &Path) -> Result<LatLonGrid<
 /// Ellipsoidal heights on a latitude/longitude grid over the ortho's
 /// footprint (plus a margin), at half the finest DEM spacing.
 fn load_terrain(src: &SceneSources, ortho: &source::RasterInfo) -> Result<Terrain, SimError> {
-    let specs = trn_raster::open_dem_specs(&src.dems, src.dem_vertical, src.geoid.as_deref())?;
+    let specs = src.dem.open()?;
     let sampler = DemSampler::open(&specs)?;
     let dem_m = specs.iter().map(|s| s.info.pixel_dx_m.min(s.info.pixel_dy_m)).fold(f64::INFINITY, f64::min);
     let e = &ortho.extent;
@@ -150,7 +148,7 @@ fn load_terrain(src: &SceneSources, ortho: &source::RasterInfo) -> Result<Terrai
     let (north, west) = (e.max_lat_deg + margin_lat, e.min_lon_deg - margin_lon);
     let heights = trn_raster::terrain::latlon_heights(&sampler, north, west, dlat, dlon, rows, cols);
     Terrain::new(heights).ok_or_else(|| SimError::Input {
-        path: src.dems[0].clone(),
+        path: src.dem.files[0].clone(),
         reason: format!("the DEM does not cover the ortho ({})", src.ortho.display()),
     })
 }

@@ -618,12 +618,6 @@ fn cancel_flag() -> anyhow::Result<Arc<AtomicBool>> {
 
 fn run_simulate(a: SimulateArgs) -> anyhow::Result<()> {
     set_threads(a.threads)?;
-    if let Some(d) = a.duration {
-        anyhow::ensure!(
-            d.is_finite() && d >= 0.0,
-            "invalid option --duration: must be a number of seconds >= 0"
-        );
-    }
     let cancel = cancel_flag()?;
     let opts = trn_sim::SimOptions {
         sources: trn_sim::SceneSources { ortho: a.ortho, ortho_bands: a.ortho_bands, dem: a.dem.inputs() },

@@ -105,10 +105,25 @@ pub struct SimReport {
     pub seconds: f64,
 }
 
+impl SimOptions {
+    /// Checks the options before any file is read, naming the `trn simulate`
+    /// option at fault.
+    pub fn check(&self) -> Result<(), SimError> {
+        if self.max_duration_s.is_some_and(|d| !(d.is_finite() && d >= 0.0)) {
+            return Err(SimError::Option {
+                option: "--duration",
+                reason: "must be a number of seconds >= 0".into(),
+            });
+        }
+        Ok(())
+    }
+}
+
 /// Simulates a flight and writes its folder (atomically: a temporary folder
 /// next to `out`, renamed over it at the end).
 pub fn simulate(opts: &SimOptions, cancel: &AtomicBool) -> Result<SimReport, SimError> {
     let t_start = Instant::now();
+    opts.check()?;
     let scenario = Scenario::load(&opts.scenario)?;
     check_out(&opts.out)?;
     let scene = load_scene(&opts.sources, scenario.realism.spectral.as_ref().map(|s| s.normalized()))?;
@@ -345,4 +360,30 @@ fn replace_dir(tmp: tempfile::TempDir, out: &Path) -> Result<(), SimError> {
         std::fs::rename(tmp.keep(), out).map_err(err)?;
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_bad_duration_is_named_before_any_file_is_read() {
+        let opts = |d: f64| SimOptions {
+            sources: SceneSources {
+                ortho: "no-such-ortho.tif".into(),
+                ortho_bands: None,
+                dem: trn_raster::DemInputs::new(vec!["no-such-dem.tif".into()]),
+            },
+            scenario: "no-such-scenario.json".into(),
+            out: "out".into(),
+            max_duration_s: Some(d),
+        };
+        for d in [-1.0, f64::NAN, f64::INFINITY] {
+            let e = simulate(&opts(d), &AtomicBool::new(false)).unwrap_err();
+            assert!(e.to_string().contains("--duration"), "{e}");
+        }
+        // A good one gets as far as the files.
+        let e = simulate(&opts(10.0), &AtomicBool::new(false)).unwrap_err();
+        assert!(e.to_string().contains("no-such-scenario.json"), "{e}");
+    }
 }

@@ -379,6 +379,108 @@ pub fn build(
 ) -> Result<BuildReport> {
     let started = Instant::now();
     opts.check()?;
+    let out_dir = out_dir_of(opts)?;
+    let Inputs { orthos: ortho_infos, dems } = open_inputs(opts)?;
+
+    let work = tempfile::Builder::new()
+        .prefix(".trn-build-")
+        .tempdir_in(&out_dir)
+        .map_err(|source| BuildError::Io { path: out_dir.clone(), source })?;
+    let groups = group_orthos(ortho_infos, work.path())?;
+    let dems = trn_raster::dem::mosaic_dems(dems, work.path())?;
+
+    let base_gsd = base_gsd_of(opts, &groups)?;
+    let suns = render_suns(opts, &groups, &dems)?;
+    let specs = opts.ladder(base_gsd);
+    let (range, serves) = (opts.gsd_range(), sizing::served(&specs));
+    log_ladder(&specs, &range, serves.as_ref(), base_gsd);
+
+    // The database is written to a temporary file next to the output by its own
+    // thread while tiles are processed, and renamed into place only on success.
+    let tmp_db = work.path().join("landmarks.gpkg");
+    let mut writer = trn_store::DbWriter::create(&tmp_db)?;
+    for (k, v) in metadata(opts, &groups, &dems, base_gsd, &specs) {
+        writer.set_metadata(&k, &v)?;
+    }
+    let ctx = BuildCtx {
+        opts,
+        dems: &dems,
+        suns: &suns,
+        base_gsd,
+        specs: &specs,
+        work: work.path(),
+        cancel,
+        progress,
+    };
+    let (tallies, summary) = select_and_write(&ctx, &groups, writer)?;
+    tracing::debug!("selection and writing done at {:.2} s", started.elapsed().as_secs_f64());
+    let (per_level, rejected, candidates) = level_reports(&specs, &tallies, &summary);
+    if summary.template_count == 0 {
+        return Err(BuildError::NoTemplates);
+    }
+    std::fs::rename(&tmp_db, &opts.out)
+        .map_err(|source| BuildError::Io { path: opts.out.clone(), source })?;
+
+    let report = BuildReport {
+        out: opts.out.clone(),
+        templates: summary.template_count as usize,
+        levels: per_level,
+        sized_for_gsd_m: range,
+        serves_gsd_m: serves,
+        mission: opts.mission,
+        max_view_deg: opts.max_view_deg(),
+        suns: opts.suns.clone(),
+        candidates,
+        rejected,
+        seconds: started.elapsed().as_secs_f64(),
+    };
+    info!("wrote {} templates to {} in {:.1} s", report.templates, opts.out.display(), report.seconds);
+    Ok(report)
+}
+
+/// Selects over every ortho group while a thread of its own inserts the
+/// templates with `writer` (and finishes the file); the tallies per level and
+/// the database's summary. On an error the writer stops and its file is left
+/// for the caller's temporary folder to remove.
+fn select_and_write(
+    ctx: &BuildCtx,
+    groups: &[OrthoGroup],
+    mut writer: trn_store::DbWriter,
+) -> Result<(Vec<LevelTally>, trn_store::DbSummary)> {
+    let (tx, rx) = std::sync::mpsc::sync_channel::<Vec<Template>>(64);
+    let abort = Arc::new(AtomicBool::new(false));
+    let writer_abort = abort.clone();
+    let writer_thread = std::thread::spawn(move || -> Result<trn_store::DbSummary> {
+        for mut batch in rx {
+            if writer_abort.load(Ordering::Relaxed) {
+                return Err(BuildError::Cancelled);
+            }
+            writer.insert_batch(&mut batch)?;
+        }
+        if writer_abort.load(Ordering::Relaxed) {
+            return Err(BuildError::Cancelled);
+        }
+        Ok(writer.finish()?)
+    });
+    let selected = select_all(ctx, groups, &tx);
+    drop(tx);
+    let tallies = match selected {
+        Ok(r) => r,
+        Err(e) => {
+            abort.store(true, Ordering::Relaxed);
+            // The writer's own error explains a closed channel better.
+            return match writer_thread.join() {
+                Ok(Err(we)) if matches!(e, BuildError::WriterStopped) => Err(we),
+                _ => Err(e),
+            };
+        }
+    };
+    let summary = writer_thread.join().map_err(|_| BuildError::WriterStopped)??;
+    Ok((tallies, summary))
+}
+
+/// The folder of `--out`, which must exist.
+fn out_dir_of(opts: &BuildOptions) -> Result<PathBuf> {
     let out_dir = match opts.out.parent() {
         Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
         _ => PathBuf::from("."),
@@ -389,8 +491,12 @@ pub fn build(
             reason: format!("folder {} does not exist", out_dir.display()),
         });
     }
+    Ok(out_dir)
+}
 
-    // Inputs: open and check everything before any work.
+/// Opens and checks every ortho (and its luminance bands) and DEM, and that
+/// they overlap, before any work.
+fn open_inputs(opts: &BuildOptions) -> Result<Inputs> {
     let mut ortho_infos = Vec::new();
     for p in &opts.orthos {
         let (ds, info) = source::inspect(p)?;
@@ -408,19 +514,22 @@ pub fn build(
         );
         ortho_infos.push((info, lum));
     }
-    let dems = open_dems(opts)?;
+    let dems = opts.dem.open()?;
     check_overlap(&ortho_infos.iter().map(|o| &o.0).collect::<Vec<_>>(), &dems)?;
+    Ok(Inputs { orthos: ortho_infos, dems })
+}
 
-    let work = tempfile::Builder::new()
-        .prefix(".trn-build-")
-        .tempdir_in(&out_dir)
-        .map_err(|source| BuildError::Io { path: out_dir.clone(), source })?;
-    let groups = group_orthos(ortho_infos, work.path())?;
-    let dems = trn_raster::dem::mosaic_dems(dems, work.path())?;
+/// The checked inputs of a build.
+struct Inputs {
+    orthos: Vec<(RasterInfo, Luminance)>,
+    dems: Vec<DemSpec>,
+}
 
+/// The ladder's base ground sample distance: `--base-gsd`, or the coarsest
+/// ortho pixel rounded up to three significant digits (readable level GSDs).
+fn base_gsd_of(opts: &BuildOptions, groups: &[OrthoGroup]) -> Result<f64> {
     let base_gsd = opts.base_gsd_m.unwrap_or_else(|| {
         let g = groups.iter().map(|g| g.info.pixel_dx_m.max(g.info.pixel_dy_m)).fold(0.0, f64::max);
-        // Three significant digits keep level GSDs readable.
         let mag = 10f64.powf(g.log10().floor() - 2.0);
         (g / mag).ceil() * mag
     });
@@ -431,10 +540,12 @@ pub fn build(
             reason: format!("{base_gsd} m is finer than half the finest ortho pixel ({finest:.3} m)"),
         });
     }
-    let suns = render_suns(opts, &groups, &dems)?;
-    let specs = opts.ladder(base_gsd);
-    let range = opts.gsd_range();
-    let serves = sizing::served(&specs);
+    Ok(base_gsd)
+}
+
+/// Logs the ladder, and warns where the ortho is too coarse for the finest
+/// camera resolution asked for.
+fn log_ladder(specs: &[LevelSpec], range: &GsdRange, serves: Option<&GsdRange>, base_gsd: f64) {
     info!(
         "sized for camera resolutions {:.2}..{:.1} m/px; {} levels: {}",
         range.finest_m,
@@ -457,59 +568,20 @@ pub fn build(
             );
         }
     }
+}
 
-    // The database is written to a temporary file next to the output by its own
-    // thread while tiles are processed, and renamed into place only on success.
-    let tmp_db = work.path().join("landmarks.gpkg");
-    let mut writer = trn_store::DbWriter::create(&tmp_db)?;
-    for (k, v) in metadata(opts, &groups, &dems, base_gsd, &specs) {
-        writer.set_metadata(&k, &v)?;
-    }
-    let (tx, rx) = std::sync::mpsc::sync_channel::<Vec<Template>>(64);
-    let abort = Arc::new(AtomicBool::new(false));
-    let writer_abort = abort.clone();
-    let writer_thread = std::thread::spawn(move || -> Result<trn_store::DbSummary> {
-        for mut batch in rx {
-            if writer_abort.load(Ordering::Relaxed) {
-                return Err(BuildError::Cancelled);
-            }
-            writer.insert_batch(&mut batch)?;
-        }
-        if writer_abort.load(Ordering::Relaxed) {
-            return Err(BuildError::Cancelled);
-        }
-        Ok(writer.finish()?)
-    });
-    let ctx = BuildCtx {
-        opts,
-        dems: &dems,
-        suns: &suns,
-        base_gsd,
-        specs: &specs,
-        work: work.path(),
-        cancel,
-        progress,
-    };
-    let selected = select_all(&ctx, &groups, &tx);
-    drop(tx);
-    let tallies = match selected {
-        Ok(r) => r,
-        Err(e) => {
-            abort.store(true, Ordering::Relaxed);
-            // The writer's own error explains a closed channel better.
-            return match writer_thread.join() {
-                Ok(Err(we)) if matches!(e, BuildError::WriterStopped) => Err(we),
-                _ => Err(e),
-            };
-        }
-    };
-    tracing::debug!("selection done at {:.2} s", started.elapsed().as_secs_f64());
-    let summary = writer_thread.join().map_err(|_| BuildError::WriterStopped)??;
+/// The report of every level of the ladder (with the stored counts; logged),
+/// the rejections by reason over all levels, and the candidates offered.
+fn level_reports(
+    specs: &[LevelSpec],
+    tallies: &[LevelTally],
+    summary: &trn_store::DbSummary,
+) -> (Vec<LevelReport>, BTreeMap<String, usize>, usize) {
     let mut rejected: BTreeMap<String, usize> = BTreeMap::new();
     let mut candidates = 0;
     let per_level: Vec<LevelReport> = specs
         .iter()
-        .zip(&tallies)
+        .zip(tallies)
         .map(|(s, t)| {
             let n = summary.levels.iter().find(|l| l.level == s.level).map(|l| l.count as usize).unwrap_or(0);
             let level_rejected: BTreeMap<String, usize> =
@@ -557,27 +629,7 @@ pub fn build(
             l.rejected
         );
     }
-    if summary.template_count == 0 {
-        return Err(BuildError::NoTemplates);
-    }
-    std::fs::rename(&tmp_db, &opts.out)
-        .map_err(|source| BuildError::Io { path: opts.out.clone(), source })?;
-
-    let report = BuildReport {
-        out: opts.out.clone(),
-        templates: summary.template_count as usize,
-        levels: per_level,
-        sized_for_gsd_m: range,
-        serves_gsd_m: serves,
-        mission: opts.mission,
-        max_view_deg: opts.max_view_deg(),
-        suns: opts.suns.clone(),
-        candidates,
-        rejected,
-        seconds: started.elapsed().as_secs_f64(),
-    };
-    info!("wrote {} templates to {} in {:.1} s", report.templates, opts.out.display(), report.seconds);
-    Ok(report)
+    (per_level, rejected, candidates)
 }
 
 /// What every ortho group of a build shares.
@@ -696,10 +748,6 @@ impl Dedupe {
             })
         })
     }
-}
-
-fn open_dems(opts: &BuildOptions) -> Result<Vec<DemSpec>> {
-    Ok(opts.dem.open()?)
 }
 
 fn union_text(rasters: &[&RasterInfo]) -> String {

@@ -80,13 +80,8 @@ impl LevelFile {
         Ok(())
     }
 
-    pub fn read(&self, x0: isize, y0: isize, width: usize, height: usize) -> Result<Window> {
-        let mut win = Window::default();
-        self.read_into(x0, y0, width, height, &mut win)?;
-        Ok(win)
-    }
-
-    /// [`Self::read`] into a window whose buffers are reused.
+    /// Reads a window into `win`, whose buffers are reused; pixels outside
+    /// the level are invalid.
     pub fn read_into(
         &self,
         x0: isize,

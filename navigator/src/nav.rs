@@ -894,22 +894,11 @@ impl<'a> Navigator<'a> {
 
     /// Templates of `level` meeting `bbox`, through the per-level cache.
     fn query(&self, bbox: &trn_landmark::GeoBox, level: u8) -> Result<Vec<Template>, trn_view::SourceError> {
-        let inside = |outer: &trn_landmark::GeoBox| {
-            !bbox.crosses_antimeridian()
-                && !outer.crosses_antimeridian()
-                && outer.min_lon_deg <= bbox.min_lon_deg
-                && outer.max_lon_deg >= bbox.max_lon_deg
-                && outer.min_lat_deg <= bbox.min_lat_deg
-                && outer.max_lat_deg >= bbox.max_lat_deg
-        };
         let mut cache = self.cache.borrow_mut();
-        let hit = cache.get(&level).is_some_and(|(b, _)| inside(b));
+        let hit = cache.get(&level).is_some_and(|(b, _)| b.contains_box(bbox));
         if !hit {
-            // Half the box's size again on every side.
-            let big = bbox.grown(
-                0.5 * (bbox.max_lon_deg - bbox.min_lon_deg).abs(),
-                0.5 * (bbox.max_lat_deg - bbox.min_lat_deg),
-            );
+            // Half the box's size again on every side (across the antimeridian too).
+            let big = bbox.grown(0.5 * bbox.lon_span_deg(), 0.5 * (bbox.max_lat_deg - bbox.min_lat_deg));
             let ts = match self.lighting {
                 0 => self.source.query(&big, level)?,
                 k => self.source.query_lit(&big, level, k)?,

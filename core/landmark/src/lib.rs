@@ -57,8 +57,49 @@ impl GeoBox {
         Some(b)
     }
 
+    /// The smallest box holding all points, crossing the antimeridian where
+    /// that is smaller (points at 179.9 and -179.9 deg make a 0.2 deg box, not
+    /// a 359.8 deg one): the longitudes' largest gap, the wrap included, is
+    /// left out.
+    pub fn around_wrapped(points: impl IntoIterator<Item = (f64, f64)>) -> Option<Self> {
+        let pts: Vec<(f64, f64)> = points.into_iter().collect();
+        let b = Self::around(pts.iter().copied())?;
+        let mut lons: Vec<f64> = pts.iter().map(|p| p.0).collect();
+        lons.sort_by(f64::total_cmp);
+        let wrap_gap = lons[0] + 360.0 - lons[lons.len() - 1];
+        let (k, gap) = lons
+            .windows(2)
+            .enumerate()
+            .map(|(k, w)| (k, w[1] - w[0]))
+            .max_by(|a, b| a.1.total_cmp(&b.1))
+            .unwrap_or((0, 0.0));
+        Some(if gap > wrap_gap { Self { min_lon_deg: lons[k + 1], max_lon_deg: lons[k], ..b } } else { b })
+    }
+
     pub fn crosses_antimeridian(&self) -> bool {
         self.min_lon_deg > self.max_lon_deg
+    }
+
+    /// East-west extent (deg), across the antimeridian where the box crosses it.
+    pub fn lon_span_deg(&self) -> f64 {
+        if self.crosses_antimeridian() {
+            self.max_lon_deg + 360.0 - self.min_lon_deg
+        } else {
+            self.max_lon_deg - self.min_lon_deg
+        }
+    }
+
+    /// Whether `other` lies inside this box (closed), antimeridian aware on
+    /// both sides.
+    pub fn contains_box(&self, other: &GeoBox) -> bool {
+        other.halves().all(|o| {
+            self.halves().any(|s| {
+                s.min_lon_deg <= o.min_lon_deg
+                    && o.max_lon_deg <= s.max_lon_deg
+                    && s.min_lat_deg <= o.min_lat_deg
+                    && o.max_lat_deg <= s.max_lat_deg
+            })
+        })
     }
 
     /// Splits an antimeridian-crossing box into two ordinary boxes.
@@ -96,18 +137,25 @@ impl GeoBox {
         (b.min_lon_deg < b.max_lon_deg && b.min_lat_deg < b.max_lat_deg).then_some(b)
     }
 
-    /// The box grown by `dlon_deg` and `dlat_deg` on every side, clamped to
-    /// the globe; an antimeridian-crossing box is returned as it is.
+    /// The box grown by `dlon_deg` and `dlat_deg` on every side: latitudes
+    /// clamped at the poles, longitudes wrapped across the antimeridian (a box
+    /// grown past it crosses it; one grown around the globe spans it all).
     pub fn grown(&self, dlon_deg: f64, dlat_deg: f64) -> GeoBox {
-        if self.crosses_antimeridian() {
-            return *self;
+        let (min_lat, max_lat) =
+            ((self.min_lat_deg - dlat_deg).max(-90.0), (self.max_lat_deg + dlat_deg).min(90.0));
+        if self.lon_span_deg() + 2.0 * dlon_deg >= 360.0 {
+            return GeoBox::new(-180.0, min_lat, 180.0, max_lat);
         }
-        GeoBox::new(
-            (self.min_lon_deg - dlon_deg).max(-180.0),
-            (self.min_lat_deg - dlat_deg).max(-90.0),
-            (self.max_lon_deg + dlon_deg).min(180.0),
-            (self.max_lat_deg + dlat_deg).min(90.0),
-        )
+        let wrap = |l: f64| {
+            if l < -180.0 {
+                l + 360.0
+            } else if l > 180.0 {
+                l - 360.0
+            } else {
+                l
+            }
+        };
+        GeoBox::new(wrap(self.min_lon_deg - dlon_deg), min_lat, wrap(self.max_lon_deg + dlon_deg), max_lat)
     }
 
     /// [`GeoBox::grown`] by `metres` on every side (degrees at the box's
@@ -377,13 +425,40 @@ mod tests {
         let west = Geodetic::new(37.3, g.min_lon_deg, 0.0).to_ecef();
         let west_edge = Geodetic::new(37.3, b.min_lon_deg, 0.0).to_ecef();
         assert!((west.distance_m(&west_edge) - 10_000.0).abs() < 20.0, "{g:?}");
-        // Clamped at the poles and the antimeridian; a crossing box stays.
+        // Clamped at the poles; across the antimeridian a box wraps and
+        // crosses it, and a crossing box grows on both sides.
         assert_eq!(
             GeoBox::new(179.0, 89.0, 179.5, 89.5).grown(2.0, 2.0),
-            GeoBox::new(177.0, 87.0, 180.0, 90.0)
+            GeoBox::new(177.0, 87.0, -178.5, 90.0)
         );
         let crossing = GeoBox::new(179.0, 0.0, -179.0, 1.0);
-        assert_eq!(crossing.grown_m(1000.0), crossing);
+        let g = crossing.grown(0.5, 0.5);
+        assert_eq!(g, GeoBox::new(178.5, -0.5, -178.5, 1.5));
+        assert!((g.lon_span_deg() - 3.0).abs() < 1e-12 && g.contains_box(&crossing));
+        // Grown around the globe: every longitude.
+        assert_eq!(crossing.grown(179.0, 0.0), GeoBox::new(-180.0, 0.0, 180.0, 1.0));
+        assert_eq!(
+            GeoBox::new(-10.0, 0.0, 10.0, 1.0).grown(170.0, 0.0),
+            GeoBox::new(-180.0, 0.0, 180.0, 1.0)
+        );
+    }
+
+    #[test]
+    fn geobox_around_the_antimeridian_is_the_small_box() {
+        // Points on both sides of 180 deg: the 0.2 deg box, not the 359.8 deg one.
+        let b = GeoBox::around_wrapped([(179.9, 10.0), (-179.9, 10.5), (179.95, 10.2)]).unwrap();
+        assert_eq!(b, GeoBox::new(179.9, 10.0, -179.9, 10.5));
+        assert!(b.crosses_antimeridian() && (b.lon_span_deg() - 0.2).abs() < 1e-9);
+        // Elsewhere the same as `around`, whatever the order of the points.
+        let pts = [(-111.0, 40.0), (-110.5, 40.5), (-110.8, 39.9)];
+        assert_eq!(GeoBox::around_wrapped(pts), GeoBox::around(pts));
+        assert_eq!(GeoBox::around_wrapped([(5.0, 1.0)]), Some(GeoBox::new(5.0, 1.0, 5.0, 1.0)));
+        assert_eq!(GeoBox::around_wrapped(std::iter::empty()), None);
+        // Containment across the antimeridian.
+        assert!(b.contains_box(&GeoBox::new(179.95, 10.1, -179.95, 10.4)));
+        assert!(b.contains_box(&GeoBox::new(-179.95, 10.1, -179.92, 10.4)));
+        assert!(!b.contains_box(&GeoBox::new(179.0, 10.1, 179.95, 10.4)));
+        assert!(!GeoBox::new(-10.0, 0.0, 10.0, 1.0).contains_box(&b));
     }
 
     #[test]

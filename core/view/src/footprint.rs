@@ -110,7 +110,8 @@ pub fn footprint(
             }
         }
     }
-    let bbox = GeoBox::around(pts).expect("four corners");
+    // Across the antimeridian, the small box that crosses it.
+    let bbox = GeoBox::around_wrapped(pts).expect("four corners");
     // GSD where the camera looks: the principal point when it sees usable
     // ground, else the middle of the walked corners.
     let centre = camera.principal_point();
@@ -166,6 +167,26 @@ mod tests {
         let height = (f.bbox.max_lat_deg - f.bbox.min_lat_deg) * m_lat;
         assert!((width.max(height) - 17_200.0).abs() < 300.0, "{width} x {height}");
         assert!((f.center_gsd_m - 16.8).abs() < 0.2, "{}", f.center_gsd_m);
+    }
+
+    #[test]
+    fn a_view_across_the_antimeridian_is_a_small_box_that_crosses_it() {
+        // Nadir at 180 deg, 30 km up: the 17 km wide view straddles the
+        // antimeridian, and its box crosses it rather than spanning the globe.
+        let cam = CameraModel::from_fov(1024, 768, 32.0);
+        let at = Geodetic::new(-17.0, 180.0, 0.0);
+        let frame = LocalFrame::at(at);
+        let pos = frame.to_ecef(trn_geodesy::Enu::new(0.0, 0.0, 30_000.0));
+        let north = frame.to_ecef(trn_geodesy::Enu::new(0.0, 1.0, 0.0)).0 - at.to_ecef().0;
+        let pose = CameraPose::look_at(pos, at.to_ecef(), north);
+        let f = footprint(&cam, &pose, &FootprintParams::default()).unwrap();
+        assert!(f.bbox.crosses_antimeridian(), "{:?}", f.bbox);
+        let (_, m_lon) = trn_geodesy::metres_per_degree(-17.0);
+        assert!((f.bbox.lon_span_deg() * m_lon - 17_200.0).abs() < 300.0, "{:?}", f.bbox);
+        assert!(f.corners.iter().all(|c| f.bbox.contains(c.lon_deg, c.lat_deg)));
+        assert!(
+            f.bbox.contains(180.0, -17.0) && f.bbox.contains(-179.99, -17.0) && !f.bbox.contains(0.0, -17.0)
+        );
     }
 
     #[test]

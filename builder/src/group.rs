@@ -254,12 +254,11 @@ pub(crate) fn build_group(
     let group_ctx = GroupCtx { opts, g, suns };
     let mut prev: Option<LevelFile> = None;
     for p in 0..plans.len() {
-        let next = match p + 1 < plans.len() {
-            true => {
-                let (w, h) = tiling.sizes[p];
-                Some(LevelFile::create(work, &format!("g{}-p{}", g.index, p + 1), w / 2, h / 2)?)
-            }
-            false => None,
+        let next = if p + 1 < plans.len() {
+            let (w, h) = tiling.sizes[p];
+            Some(LevelFile::create(work, &format!("g{}-p{}", g.index, p + 1), w / 2, h / 2)?)
+        } else {
+            None
         };
         let pass = Pass { plans: &plans[p], margin: margin_of(p), prev: prev.as_ref(), next: next.as_ref() };
         let outputs: Vec<Result<Vec<TileLevel>>> = tiling

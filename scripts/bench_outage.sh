@@ -8,6 +8,8 @@
 # of the fixes after it; results in target/realistic/outage/results.md.
 # (Drift: the change of the east/north/up error vector over the outage.)
 # Usage: scripts/bench_outage.sh [FLIGHT [T0 [DURATION]]]   (default: sierra-balloon-nadir 15 30)
+# Environment: WINDOW=F (0 < F < 1) keeps a centred box of F times the image's
+# sides visible (a hole in the cloud: a few landmarks) instead of greying all.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:-target/realistic}
@@ -24,24 +26,25 @@ rm -rf "$work"; mkdir -p "$f/images"
 for x in "$src"/*; do [ "$(basename "$x")" = images ] || ln -s "$(readlink -f "$x")" "$f/"; done
 for x in "$src"/images/*; do ln -s "$(readlink -f "$x")" "$f/images/"; done
 # Grey out the outage's images (a uniform picture: no texture, no match).
-python3 - "$src" "$f" "$t0" "$dur" <<'PY'
-import csv, sys, zlib, struct
-src, dst, t0, dur = sys.argv[1], sys.argv[2], float(sys.argv[3]), float(sys.argv[4])
-def png_grey(path_like_src, out):
-    data = open(path_like_src, 'rb').read()
-    w, h = struct.unpack('>II', data[16:24])
-    raw = b''.join(b'\x00' + b'\x80' * w for _ in range(h))
-    def chunk(t, d): return struct.pack('>I', len(d)) + t + d + struct.pack('>I', zlib.crc32(t + d) & 0xffffffff)
-    png = b'\x89PNG\r\n\x1a\n' + chunk(b'IHDR', struct.pack('>IIBBBBB', w, h, 8, 0, 0, 0, 0)) + chunk(b'IDAT', zlib.compress(raw)) + chunk(b'IEND', b'')
-    import os
-    os.remove(out)
-    open(out, 'wb').write(png)
+"${PY:-.venv/bin/python}" - "$src" "$f" "$t0" "$dur" "${WINDOW:-0}" <<'PY'
+import csv, os, sys
+import cv2
+src, dst, t0, dur, window = sys.argv[1], sys.argv[2], float(sys.argv[3]), float(sys.argv[4]), float(sys.argv[5])
 n = 0
 for row in csv.DictReader(open(f"{src}/frames.csv")):
     t = float(row['t'])
     if t0 <= t < t0 + dur:
-        png_grey(f"{src}/{row['image']}", f"{dst}/{row['image']}"); n += 1
-print(f"{n} images greyed from t = {t0} s for {dur} s", file=sys.stderr)
+        img = cv2.imread(f"{src}/{row['image']}", cv2.IMREAD_UNCHANGED)
+        out = img.copy()
+        out[...] = 128
+        if window > 0:
+            h, w = img.shape[:2]
+            y0, x0 = int(h * (1 - window) / 2), int(w * (1 - window) / 2)
+            out[y0:h - y0, x0:w - x0] = img[y0:h - y0, x0:w - x0]
+        os.remove(f"{dst}/{row['image']}")
+        cv2.imwrite(f"{dst}/{row['image']}", out)
+        n += 1
+print(f"{n} images from t = {t0} s for {dur} s: {'a centred box of %g of the sides kept' % window if window > 0 else 'grey'}", file=sys.stderr)
 PY
 rows=()
 for filter in tight loose fixes; do
@@ -64,14 +67,15 @@ mean_after = sum(fixes_after) / len(fixes_after) if fixes_after else float('nan'
 # change of the east/north/up error vector, not of its length).
 e0, e1 = before[-1]['error']['enu_m'], during[-1]['error']['enu_m']
 drift = sum((a - b) ** 2 for a, b in zip(e0, e1)) ** 0.5
-print(f"| {filt} | {err(before[-1]):.1f} | {err(during[-1]):.1f} | {drift:.1f} | {first_fix:.1f} | {mean_after:.1f} |")
+used = sum(1 for r in during if (r.get('inliers') or 0) > 0)
+print(f"| {filt} | {err(before[-1]):.1f} | {err(during[-1]):.1f} | {drift:.1f} | {first_fix:.1f} | {mean_after:.1f} | {used} |")
 PY
 )")
 done
 {
-  echo "Outage: $name, images from t = $t0 s greyed for $dur s"
+  echo "Outage: $name, images from t = $t0 s greyed for $dur s (WINDOW=${WINDOW:-0})"
   echo
-  echo "| filter | error before (m) | error at the outage's end (m) | drift (m) | next fix after (s) | mean error after (m) |"
-  echo "|---|---:|---:|---:|---:|---:|"
+  echo "| filter | error before (m) | error at the outage's end (m) | drift (m) | next fix after (s) | mean error after (m) | frames with inliers in the outage |"
+  echo "|---|---:|---:|---:|---:|---:|---:|"
   printf '%s\n' "${rows[@]}"
 } | tee "$work/results.md"

@@ -66,8 +66,11 @@ pub struct NavParams {
     /// direction) of at least this share of the image's smaller side. A
     /// line or a cluster of matches pins the pose in some directions only,
     /// and is what a chance consensus of wrong matches on a local pattern
-    /// looks like. (Accepted fixes on the realistic and synthetic flights:
-    /// at least 8 cells and 0.09.)
+    /// looks like; and landmarks seen through a hole in the cloud leave the
+    /// tilt/shift trade of a narrow view to the attitude prior (measured, a
+    /// hole of 25% of the sides on the Sierra nadir balloon: fixes 445 m off
+    /// at 0.04; none taken at 0.08, the filter coasting instead). (Accepted
+    /// fixes on the realistic flights: at least 8 cells and 0.096.)
     pub min_inlier_cells: usize,
     pub min_inlier_spread: f64,
     /// A fix whose height is farther than this from the predicted one (the
@@ -142,7 +145,7 @@ impl Default for NavParams {
             min_inliers: 8,
             min_inlier_share: 0.3,
             min_inlier_cells: 4,
-            min_inlier_spread: 0.04,
+            min_inlier_spread: 0.08,
             max_height_jump_m: 450.0,
             max_landmarks: 300,
             grid: (8, 6),
@@ -1572,6 +1575,25 @@ mod tests {
         assert_eq!(cells, 1);
         assert!(spread < 0.04 * h, "{spread}");
         assert_eq!(inlier_spread(&[], w, h, (8, 6)), (0, 0.0));
+        // A hole in the cloud: landmarks over a centred box of a quarter of
+        // the image's sides cover enough cells but are refused by the default
+        // spread; a box of 35% of the sides is taken.
+        let p = NavParams::default();
+        let hole = |share: f64| -> Vec<Pixel> {
+            let (bw, bh) = (share * w, share * h);
+            (0..100)
+                .map(|i| {
+                    Pixel::new(
+                        0.5 * (w - bw) + bw * (i % 10) as f64 / 9.0,
+                        0.5 * (h - bh) + bh * (i / 10) as f64 / 9.0,
+                    )
+                })
+                .collect()
+        };
+        let (cells, spread) = inlier_spread(&hole(0.25), w, h, p.grid);
+        assert!(cells >= p.min_inlier_cells && spread < p.min_inlier_spread * h, "{cells} {spread}");
+        let (cells, spread) = inlier_spread(&hole(0.35), w, h, p.grid);
+        assert!(cells >= p.min_inlier_cells && spread >= p.min_inlier_spread * h, "{cells} {spread}");
     }
 
     #[test]

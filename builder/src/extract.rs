@@ -6,7 +6,7 @@ use trn_geodesy::Geodetic;
 use trn_landmark::{GeoBox, HeightGrid, Template, TemplateQuality, TerrainPatch};
 
 use crate::select::Candidate;
-use crate::source::{PixelToCrs, ToWgs84};
+use crate::source::{PixelToCrs, Wgs84Transform};
 use crate::terrain::Heights;
 use trn_raster::ortho::Window;
 
@@ -15,7 +15,7 @@ pub struct WindowGeo<'a> {
     pub to_crs: PixelToCrs,
     /// Native pixels per level pixel (2^p).
     pub scale: f64,
-    pub to_wgs: &'a ToWgs84,
+    pub to_wgs: &'a Wgs84Transform,
 }
 
 impl WindowGeo<'_> {

@@ -22,13 +22,13 @@ use crate::sizing::{self, LevelSpec};
 use crate::terrain::{self, DemSampler, DemSpec};
 use crate::{BuildCtx, BuildError, BuildOptions, LevelTally, OrthoGroup, Progress, Result, FILL_MAX_BOOST};
 use trn_raster::ortho::{self, OrthoReader, Window};
-use trn_raster::source::ToWgs84;
+use trn_raster::source::Wgs84Transform;
 
 /// Per-thread GDAL state for one group.
 struct Worker {
     ortho: OrthoReader,
     dem: DemSampler,
-    to_wgs: ToWgs84,
+    to_wgs: Wgs84Transform,
     /// Buffers reused tile after tile: no allocation and no fresh pages per tile.
     win: Window,
     select: select::Scratch,
@@ -46,7 +46,7 @@ impl Worker {
         Ok(Self {
             ortho: OrthoReader::open(&g.path, &g.lum)?,
             dem: DemSampler::open(dems)?,
-            to_wgs: ToWgs84::of_raster(&g.path)?,
+            to_wgs: Wgs84Transform::to_wgs84(&g.path)?,
             win: Window::default(),
             select: select::Scratch::default(),
             down_lum: Vec::new(),

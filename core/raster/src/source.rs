@@ -51,44 +51,33 @@ pub struct RasterInfo {
     pub pixel_dy_m: f64,
 }
 
-/// A raster's CRS to WGS84 longitude and latitude (degrees, in that order).
-/// Holds a GDAL transformation: one thread uses it at a time.
-pub struct ToWgs84(CoordTransform);
+/// A transformation between a raster's CRS and WGS84 longitude/latitude
+/// (degrees, in that order), either way. Holds a GDAL transformation: one
+/// thread uses it at a time.
+pub struct Wgs84Transform(CoordTransform);
 
-impl ToWgs84 {
-    /// From the CRS of the raster at `path`.
-    pub fn of_raster(path: &Path) -> Result<Self> {
-        let ds = open(path)?;
-        let srs = srs_of(&ds, path)?;
-        CoordTransform::new(&srs, &wgs84())
-            .map(Self)
-            .map_err(|e| RasterError::BadRaster { path: path.into(), reason: e.to_string() })
+impl Wgs84Transform {
+    /// From the CRS of the raster at `path` to WGS84.
+    pub fn to_wgs84(path: &Path) -> Result<Self> {
+        Self::between(path, true)
     }
 
-    /// Transforms CRS coordinates `(xs, ys)` in place to (lon, lat); `None`
-    /// when a point does not transform.
-    pub fn apply(&self, xs: &mut [f64], ys: &mut [f64]) -> Option<()> {
-        let mut zs = vec![0.0; xs.len()];
-        self.0.transform_coords(xs, ys, &mut zs).ok()
+    /// From WGS84 to the CRS of the raster at `path`.
+    pub fn from_wgs84(path: &Path) -> Result<Self> {
+        Self::between(path, false)
     }
-}
 
-/// WGS84 longitude and latitude (degrees) to a raster's CRS. Holds a GDAL
-/// transformation: one thread uses it at a time.
-pub struct FromWgs84(CoordTransform);
-
-impl FromWgs84 {
-    /// To the CRS of the raster at `path`.
-    pub fn of_raster(path: &Path) -> Result<Self> {
+    fn between(path: &Path, to_wgs84: bool) -> Result<Self> {
         let ds = open(path)?;
-        let srs = srs_of(&ds, path)?;
-        CoordTransform::new(&wgs84(), &srs)
+        let (crs, wgs) = (srs_of(&ds, path)?, wgs84());
+        let (from, to) = if to_wgs84 { (&crs, &wgs) } else { (&wgs, &crs) };
+        CoordTransform::new(from, to)
             .map(Self)
             .map_err(|e| RasterError::BadRaster { path: path.into(), reason: gdal_reason(&e, path) })
     }
 
-    /// Transforms (lon, lat) in `(xs, ys)` in place to CRS coordinates;
-    /// `None` when a point does not transform.
+    /// Transforms the points `(xs, ys)` in place; `None` when one does not
+    /// transform.
     pub fn apply(&self, xs: &mut [f64], ys: &mut [f64]) -> Option<()> {
         let mut zs = vec![0.0; xs.len()];
         self.0.transform_coords(xs, ys, &mut zs).ok()

@@ -224,3 +224,38 @@ fn write_raster<T: gdal::raster::GdalType + Copy + Default + Send>(
     ds.close().map_err(err)?;
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_bad_scene_is_named_and_nothing_is_written() {
+        let good = SynthScene {
+            size: 64,
+            gsd_m: 2.0,
+            east_m: 440_000.0,
+            north_m: 4_460_000.0,
+            seed: 1,
+            relief_m: 60.0,
+            nodata_border: 0,
+            compression: Compression::Deflate,
+        };
+        assert!(good.check().is_ok());
+        let dir = std::env::temp_dir().join(format!("trn-synth-test-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let (ortho, dem) = (dir.join("o.tif"), dir.join("d.tif"));
+        for (bad, option) in [
+            (SynthScene { relief_m: -5.0, ..good }, "--relief"),
+            (SynthScene { relief_m: f64::NAN, ..good }, "--relief"),
+            (SynthScene { gsd_m: 0.0, ..good }, "--gsd"),
+            (SynthScene { gsd_m: f64::INFINITY, ..good }, "--gsd"),
+            (SynthScene { size: 0, ..good }, "--size"),
+        ] {
+            let e = bad.write(&ortho, &dem).unwrap_err();
+            assert!(e.to_string().contains(option), "{e}");
+            assert!(!ortho.exists() && !dem.exists());
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}

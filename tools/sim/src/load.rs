@@ -90,7 +90,7 @@ pub fn load_scene(src: &SceneSources, spectral_weights: Option<[f32; 3]>) -> Res
 /// Latitude/longitude -> ortho pixel-centre position on a grid over the
 /// ortho's footprint.
 fn ortho_transform(info: &source::RasterInfo, path: &Path) -> Result<LatLonGrid<[f64; 2]>, SimError> {
-    let ct = source::FromWgs84::of_raster(path)?;
+    let ct = source::Wgs84Transform::from_wgs84(path)?;
     let e = &info.extent;
     let n = TRANSFORM_NODES;
     let dlat = (e.max_lat_deg - e.min_lat_deg) / (n - 1) as f64;

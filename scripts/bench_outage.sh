@@ -9,7 +9,10 @@
 # (Drift: the change of the east/north/up error vector over the outage.)
 # Usage: scripts/bench_outage.sh [FLIGHT [T0 [DURATION]]]   (default: sierra-balloon-nadir 15 30)
 # Environment: WINDOW=F (0 < F < 1) keeps a centred box of F times the image's
-# sides visible (a hole in the cloud: a few landmarks) instead of greying all.
+# sides visible (a hole in the cloud: a few landmarks) instead of greying all;
+# FILTERS="tight loose fixes" the --filter runs; TRN a trn binary to use (default:
+# this checkout's, built); NAV_ARGS more trn navigate options; WORK the
+# work folder (default OUT/outage).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:-target/realistic}
@@ -18,9 +21,10 @@ src="$OUT/flights/$name"
 world=${name%%-*}
 db="$OUT/db/$world.gpkg"
 [ -f "$src/frames.csv" ] && [ -f "$db" ] || { echo "run scripts/bench_realistic.sh first ($src, $db)" >&2; exit 1; }
-cargo build --release --quiet --bin trn
-trn=target/release/trn
-work="$OUT/outage"
+if [ -z "${TRN:-}" ]; then cargo build --release --quiet --bin trn; fi
+trn=${TRN:-target/release/trn}
+read -r -a nav_args <<< "${NAV_ARGS:-}"
+work=${WORK:-$OUT/outage}
 f="$work/flight"
 rm -rf "$work"; mkdir -p "$f/images"
 for x in "$src"/*; do [ "$(basename "$x")" = images ] || ln -s "$(readlink -f "$x")" "$f/"; done
@@ -47,9 +51,9 @@ for row in csv.DictReader(open(f"{src}/frames.csv")):
 print(f"{n} images from t = {t0} s for {dur} s: {'a centred box of %g of the sides kept' % window if window > 0 else 'grey'}", file=sys.stderr)
 PY
 rows=()
-for filter in tight loose fixes; do
+for filter in ${FILTERS:-tight loose fixes}; do
   d="$work/$filter"; mkdir -p "$d"
-  "$trn" navigate --db "$db" --flight "$f" --filter "$filter" --out "$d/poses.csv" > "$d/report.json" 2> "$d/log.txt"
+  "$trn" navigate --db "$db" --flight "$f" --filter "$filter" --out "$d/poses.csv" "${nav_args[@]}" > "$d/report.json" 2> "$d/log.txt"
   "$trn" evaluate --flight "$f" --poses "$d/poses.csv" --json "$d/eval.json" > /dev/null 2>&1
   rows+=("$(python3 - "$d/eval.json" "$t0" "$dur" "$filter" <<'PY'
 import json, sys
@@ -68,14 +72,16 @@ mean_after = sum(fixes_after) / len(fixes_after) if fixes_after else float('nan'
 e0, e1 = before[-1]['error']['enu_m'], during[-1]['error']['enu_m']
 drift = sum((a - b) ** 2 for a, b in zip(e0, e1)) ** 0.5
 used = sum(1 for r in during if (r.get('inliers') or 0) > 0)
-print(f"| {filt} | {err(before[-1]):.1f} | {err(during[-1]):.1f} | {drift:.1f} | {first_fix:.1f} | {mean_after:.1f} | {used} |")
+fixes_during = [err(r) for r in during if r['status'] == 'fix']
+worst = f"{max(fixes_during):.1f}" if fixes_during else "none"
+print(f"| {filt} | {err(before[-1]):.1f} | {err(during[-1]):.1f} | {drift:.1f} | {first_fix:.1f} | {mean_after:.1f} | {used} | {len(fixes_during)} | {worst} |")
 PY
 )")
 done
 {
   echo "Outage: $name, images from t = $t0 s greyed for $dur s (WINDOW=${WINDOW:-0})"
   echo
-  echo "| filter | error before (m) | error at the outage's end (m) | drift (m) | next fix after (s) | mean error after (m) | frames with inliers in the outage |"
-  echo "|---|---:|---:|---:|---:|---:|---:|"
+  echo "| filter | error before (m) | error at the outage's end (m) | drift (m) | next fix after (s) | mean error after (m) | frames with inliers in the outage | fixes in the outage | worst of them (m) |"
+  echo "|---|---:|---:|---:|---:|---:|---:|---:|---:|"
   printf '%s\n' "${rows[@]}"
 } | tee "$work/results.md"

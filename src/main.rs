@@ -349,6 +349,10 @@ struct NavigateArgs {
     /// (ms, 1 sigma; 0: the stamps are trusted).
     #[arg(long, default_value_t = 10.0)]
     time_offset_sigma: f64,
+    /// Use frames without a fix only as fixes (the tight filter otherwise
+    /// updates with their matches that agree with its prediction, 3 or more).
+    #[arg(long)]
+    no_prior_gated_update: bool,
     /// Trust camera.json's focal length instead of estimating it in flight.
     #[arg(long)]
     no_self_calibration: bool,
@@ -649,6 +653,7 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
     params.map_sigma_m = a.map_sigma;
     params.map_tau_s = a.map_tau;
     params.time_offset_sigma_s = a.time_offset_sigma / 1e3;
+    params.prior_gated_update = !a.no_prior_gated_update;
     params.sun = a.sun;
     params.shading_weight = a.shading_weight;
     params.gyro_arw_deg_sqrt_s = a.gyro_arw / 60.0;
@@ -708,7 +713,7 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
     }
     let report = run.report;
     tracing::info!(
-        "{} of {} frames processed, {} fixes ({} rejected for too few inliers, {} for too small a share of inliers, {} for inliers on a line or in a cluster, {} for their height, {} as inconsistent with the inertial filter), median {:.1} ms per frame; wrote {}, {} and {}",
+        "{} of {} frames processed, {} fixes ({} rejected for too few inliers, {} for too small a share of inliers, {} for inliers on a line or in a cluster, {} for their height, {} as inconsistent with the inertial filter; {} frames without a fix updated the filter with their matches), median {:.1} ms per frame; wrote {}, {} and {}",
         report.processed,
         report.frames,
         report.fixes,
@@ -717,6 +722,7 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
         report.rejected.spread,
         report.rejected.height,
         report.rejected.inconsistent,
+        report.prior_gated_updates,
         report.median_ms,
         a.out.display(),
         matches_path.display(),
@@ -724,6 +730,17 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
     );
     if let Some(o) = &report.time_offset {
         tracing::info!("camera-IMU time offset: {:+.2} ms +- {:.2} ms", o.offset_ms, o.sigma_ms);
+    }
+    if let Some(g) = &report.gyro_bias_imu_deg_h {
+        tracing::info!(
+            "gyro bias (IMU x, y, z): {:+.2} {:+.2} {:+.2} deg/h +- {:.2} {:.2} {:.2}",
+            g.x,
+            g.y,
+            g.z,
+            g.sigma_x,
+            g.sigma_y,
+            g.sigma_z
+        );
     }
     if let Some(c) = &report.calibration {
         tracing::info!(

@@ -482,3 +482,67 @@ fn a_guess_kilometres_off_on_a_repeated_pattern_gives_no_wrong_fix() {
         assert!(worst < 50.0, "a fix {worst} m off was accepted: {r:?}");
     }
 }
+
+#[test]
+fn frames_seen_through_a_hole_in_the_cloud_still_update_the_tight_filter() {
+    let s = nav_fixture();
+    let dir = s.root().join("hole");
+    let flight = dir.join("flight");
+    copy_flight(&s.flight, &flight);
+    // From 1 s on, each image is grey but for a centred box of 0.3 of its
+    // sides: too narrow a spread for a fix, a few matches for the filter.
+    let frames = std::fs::read_to_string(flight.join("frames.csv")).unwrap();
+    let mut hole = 0;
+    for line in frames.lines().skip(1) {
+        let (t, image) = line.split_once(',').unwrap();
+        if t.parse::<f64>().unwrap() < 1.0 {
+            continue;
+        }
+        let path = flight.join(image);
+        let mut img = image::open(&path).unwrap().to_luma8();
+        let (w, h) = img.dimensions();
+        let (x0, y0) = ((w as f64 * 0.35) as u32, (h as f64 * 0.35) as u32);
+        for (x, y, p) in img.enumerate_pixels_mut() {
+            if x < x0 || x >= w - x0 || y < y0 || y >= h - y0 {
+                p.0 = [128];
+            }
+        }
+        img.save(&path).unwrap();
+        hole += 1;
+    }
+    let run_with = |name: &str, extra: &[&str]| {
+        let poses = dir.join(name);
+        let mut args = vec!["navigate", "--db", s.db.to_str().unwrap(), "--flight", flight.to_str().unwrap()];
+        args.extend_from_slice(&["--out", poses.to_str().unwrap()]);
+        args.extend_from_slice(extra);
+        let o = run(&args);
+        assert!(o.status.success(), "navigate failed: {}", stderr(&o));
+        let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        let json = dir.join(format!("{name}.json"));
+        let o = run(&[
+            "evaluate",
+            "--flight",
+            flight.to_str().unwrap(),
+            "--poses",
+            poses.to_str().unwrap(),
+            "--json",
+            json.to_str().unwrap(),
+        ]);
+        assert!(o.status.success(), "evaluate failed: {}", stderr(&o));
+        let e: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(json).unwrap()).unwrap();
+        let worst = e["runs"][0]["per_frame"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|f| f["error"]["pos_m"].as_f64().unwrap())
+            .fold(0.0, f64::max);
+        (report["fixes"].as_u64().unwrap(), report["prior_gated_updates"].as_u64().unwrap(), worst)
+    };
+    let (fixes, gated, worst) = run_with("gated.csv", &[]);
+    let total = frames.lines().count() as u64 - 1;
+    assert!(fixes <= total - hole, "{fixes} fixes: the box gives none");
+    assert!(gated * 2 >= hole, "{gated} of {hole} frames through the hole updated the filter");
+    assert!(worst < 10.0, "worst error {worst:.1} m");
+    let (_, none, _) = run_with("plain.csv", &["--no-prior-gated-update"]);
+    assert_eq!(none, 0);
+}

@@ -327,6 +327,12 @@ impl InsFilter {
         (perturb(&pose, &self.time_shift()), h * self.covariance * h.transpose())
     }
 
+    /// The gyro bias's estimate and covariance (rad/s, IMU frame).
+    pub fn gyro_bias_with_covariance(&self) -> (Vector3<f64>, Matrix3<f64>) {
+        let cov = self.covariance.fixed_view::<3, 3>(GYRO_BIAS, GYRO_BIAS).into_owned();
+        (self.state.gyro_bias_imu_rad_s, cov)
+    }
+
     /// The camera-IMU time offset's estimate and sigma (s).
     pub fn time_offset(&self) -> (f64, f64) {
         (self.state.time_offset_s, self.covariance[(TIME, TIME)].max(0.0).sqrt())

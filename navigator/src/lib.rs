@@ -36,6 +36,7 @@ use std::path::{Path, PathBuf};
 
 use ::image::ImageEncoder;
 
+use nalgebra::{Matrix3, Vector3};
 use trn_flight::{FixStatus, Flight, MatchRecord, NavRecord, PoseCovariance, TimedPose};
 
 pub use nav::{FilterMode, FilterPose, HeightGate, HeightReference, NavParams, Navigator, Rejection};
@@ -148,11 +149,38 @@ pub struct RunReport {
     /// Solutions rejected, by reason (their frames are `propagated`).
     pub rejected: RejectedCounts,
     pub median_ms: f64,
+    /// Frames without a fix whose matches updated the tight filter through
+    /// its prediction (`NavParams::prior_gated_update`).
+    pub prior_gated_updates: usize,
     /// The camera's self-calibration at the end (`None`: off).
     pub calibration: Option<CalibrationReport>,
     /// The camera-IMU time offset the inertial filter ends with (`None`:
     /// no inertial filter): an image stamped `t` was exposed at `t + this`.
     pub time_offset: Option<TimeOffsetReport>,
+    /// The gyro bias the inertial filter ends with (deg/h, IMU frame).
+    pub gyro_bias_imu_deg_h: Option<AxesReport>,
+}
+
+/// A vector estimate and its per-axis sigmas (the unit and frame in the
+/// field's name).
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct AxesReport {
+    pub x: f64,
+    pub y: f64,
+    pub z: f64,
+    pub sigma_x: f64,
+    pub sigma_y: f64,
+    pub sigma_z: f64,
+}
+
+impl AxesReport {
+    /// `value` and its covariance `cov`, both scaled by `scale` (a unit change).
+    fn scaled(value: &Vector3<f64>, cov: &Matrix3<f64>, scale: f64) -> Self {
+        let v = value * scale;
+        let c = cov * (scale * scale);
+        let sigma = |i: usize| c[(i, i)].max(0.0).sqrt();
+        Self { x: v.x, y: v.y, z: v.z, sigma_x: sigma(0), sigma_y: sigma(1), sigma_z: sigma(2) }
+    }
 }
 
 /// The inertial filter's camera-IMU time offset (ms).
@@ -259,6 +287,7 @@ pub fn run_flight(
     let mut matches = Vec::new();
     let mut covariances = Vec::new();
     let mut imu_rate = Vec::new();
+    let mut gated = 0;
     opts.check()?;
     let row = |p: FilterPose, status: FixStatus| {
         let position = p.pose.position.to_geodetic();
@@ -318,6 +347,7 @@ pub fn run_flight(
             Some(Rejection::Inconsistent { .. }) => rejected.inconsistent += 1,
             None => {}
         }
+        gated += usize::from(r.gated_matches > 0);
         records.push(r.record);
         matches.extend(r.matches);
         covariances.extend(r.covariance);
@@ -330,10 +360,15 @@ pub fn run_flight(
         fixes: records.iter().filter(|r| r.status == FixStatus::Fix).count(),
         rejected,
         median_ms: ms.get(ms.len() / 2).copied().unwrap_or(0.0),
+        prior_gated_updates: gated,
         calibration: nav.calibration().map(CalibrationReport::of),
         time_offset: nav.inertial().map(|f| {
             let (offset, sigma) = f.time_offset();
             TimeOffsetReport { offset_ms: offset * 1e3, sigma_ms: sigma * 1e3 }
+        }),
+        gyro_bias_imu_deg_h: nav.inertial().map(|f| {
+            let (b, cov) = f.gyro_bias_with_covariance();
+            AxesReport::scaled(&b, &cov, 1f64.to_degrees() * 3600.0)
         }),
     };
     Ok(RunOutput { records, matches, covariances, imu_rate, report })

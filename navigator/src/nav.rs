@@ -3,7 +3,9 @@
 
 use std::time::Instant;
 
-use nalgebra::{Matrix3, Matrix6, UnitQuaternion, Vector3};
+use nalgebra::{
+    DMatrix, DVector, Matrix2, Matrix3, Matrix6, SMatrix, UnitQuaternion, Vector2, Vector3, Vector6,
+};
 use tracing::debug;
 use trn_camera::{CameraConfig, CameraModel, CameraPose, Pixel};
 use trn_flight::{FixStatus, ImuSample, MatchRecord, NavRecord, PoseCovariance, TimedPose};
@@ -118,6 +120,10 @@ pub struct NavParams {
     /// Prior 1-sigma of the camera-IMU time offset (s) the inertial filter
     /// estimates (an image stamped `t` exposed at `t + offset`); 0: none.
     pub time_offset_sigma_s: f64,
+    /// With the tight filter, a frame without a fix (too few inliers, or
+    /// too narrow a spread) still updates the filter with its matches that
+    /// agree with the prediction (at least 3; see `Navigator::gated_update`).
+    pub prior_gated_update: bool,
     /// A frame whose image-only pose is farther than this from the inertial
     /// filter's prediction (chi-square, 6 degrees of freedom) is rejected as
     /// inconsistent, and the filter's pose and velocity uncertainty doubled.
@@ -172,6 +178,7 @@ impl Default for NavParams {
             map_sigma_m: 20.0,
             map_tau_s: 10.0,
             time_offset_sigma_s: 0.01,
+            prior_gated_update: true,
             // 99.9% of chi-square with 6 degrees of freedom.
             innovation_gate_chi2: 22.46,
             sun: None,
@@ -191,6 +198,9 @@ pub struct FrameResult {
     pub covariance: Option<PoseCovariance>,
     /// Why the frame's solution was not accepted (its pose is then carried).
     pub rejection: Option<Rejection>,
+    /// Matches of a frame without a fix that updated the inertial filter
+    /// through its prediction ([`NavParams::prior_gated_update`]; 0: none).
+    pub gated_matches: usize,
 }
 
 /// Why a frame's pose solution was rejected.
@@ -557,6 +567,25 @@ impl<'a> Navigator<'a> {
         }
     }
 
+    /// [`prior_gated_update`] for a frame without a fix, with the tight
+    /// filter ([`NavParams::prior_gated_update`]).
+    fn gated_update(&self, t: f64, filter: &mut Carried, found: &[Match]) -> usize {
+        let Carried::Ins(f) = filter else { return 0 };
+        // Before the first fix the prediction is only the initial guess: its
+        // chance matches would shrink the doubt that widens the search.
+        if self.params.filter != FilterMode::Tight
+            || !self.params.prior_gated_update
+            || self.last_fix.is_none()
+        {
+            return 0;
+        }
+        let n = prior_gated_update(&self.camera, &self.q_imu_cam, f, found);
+        if n > 0 {
+            debug!("t {t:.3}: prior-gated update with {n} matches");
+        }
+        n
+    }
+
     fn calibrate(&mut self, t: f64, sol: &mut Solution, frame: Option<FrameCalibration>) -> Matrix6<f64> {
         let Some(frame) = frame else { return Matrix6::zeros() };
         let Some(cal) = &mut self.calibration else { return Matrix6::zeros() };
@@ -728,6 +757,7 @@ impl<'a> Navigator<'a> {
         let outcome = self.solve(t, &pred.guess, &pred.att_cov, pred.sigma_m, image);
         let mut covariance = None;
         let mut rejected = None;
+        let mut gated_matches = 0;
         let (status, inliers, n_matches, matches, guess_px) = match outcome {
             Ok(mut sol) => {
                 let mut rejection = if sol.inliers < self.params.min_inliers {
@@ -774,13 +804,18 @@ impl<'a> Navigator<'a> {
                         // so the next frames search wider and a run of such
                         // frames gets through the gate.
                         f.inflate(2.0);
+                    } else if !sol.acquisition && !matches!(rejection, Some(Rejection::Height { .. })) {
+                        let found = matches_of(&sol);
+                        gated_matches = self.gated_update(t, &mut pred.filter, &found);
                     }
                     self.carry(t, pred);
                 }
                 let status = if accepted { FixStatus::Fix } else { FixStatus::Propagated };
                 (status, sol.inliers, sol.n_matches, sol.records, sol.guess_px)
             }
-            Err(NoSolution { matches }) => {
+            Err(NoSolution { matches, found }) => {
+                let mut pred = pred;
+                gated_matches = self.gated_update(t, &mut pred.filter, &found);
                 self.carry(t, pred);
                 (FixStatus::Propagated, 0, matches, Vec::new(), Vec::new())
             }
@@ -805,6 +840,7 @@ impl<'a> Navigator<'a> {
             guess_px,
             covariance,
             rejection: rejected,
+            gated_matches,
         }
     }
 
@@ -945,7 +981,7 @@ impl<'a> Navigator<'a> {
         )
         .map_err(|e| {
             debug!("t {t:.3}: {e}");
-            NoSolution { matches: 0 }
+            NoSolution::default()
         })?;
         let sigma_px = f * (sigma_rad + sigma_m / fp.center_range_m);
         // A search wider than half the focal length (a guess kilometres
@@ -1002,7 +1038,7 @@ impl<'a> Navigator<'a> {
                 // inliers), and nothing tells it from the truth.
                 Ok(sol) if margin_px > 0.0 && best.is_none() => {
                     debug!("level {level}: acquisition failed ({} inliers)", sol.inliers);
-                    return Err(NoSolution { matches: sol.n_matches });
+                    return Err(NoSolution { matches: sol.n_matches, found: Vec::new() });
                 }
                 Err(e) if margin_px > 0.0 && best.is_none() => {
                     debug!("level {level}: acquisition failed ({} matches)", e.matches);
@@ -1016,7 +1052,7 @@ impl<'a> Navigator<'a> {
                 Err(_) => radius = widened(radius, self.params.max_radius_px),
             }
         }
-        let mut sol = best.ok_or(NoSolution { matches: 0 })?;
+        let mut sol = best.ok_or(NoSolution::default())?;
         sol.acquisition = margin_px > 0.0;
         // The refined terrain height helps the next footprint.
         if let Some(h) = sol.mean_landmark_h {
@@ -1068,7 +1104,7 @@ impl<'a> Navigator<'a> {
         for l in self.levels.iter().map(|l| l.level).filter(|&l| l >= lo && l <= hi) {
             templates.extend(self.query(&fp.bbox, l).map_err(|e| {
                 tracing::warn!("landmark query failed: {e}");
-                NoSolution { matches: 0 }
+                NoSolution::default()
             })?);
         }
         templates.retain(|t| {
@@ -1121,9 +1157,10 @@ impl<'a> Navigator<'a> {
         prior: Option<&AttitudePrior>,
     ) -> Result<Solution, NoSolution> {
         let n = matches.len();
-        let fail = NoSolution { matches: n };
+        let found = if level == 0 { matches.to_vec() } else { Vec::new() };
+        let fail = || NoSolution { matches: n, found: found.clone() };
         if n < 4 {
-            return Err(fail);
+            return Err(fail());
         }
         let scale = (1u32 << level) as f64;
         let pixels: Vec<Pixel> = matches.iter().map(|m| m.pixel).collect();
@@ -1133,7 +1170,7 @@ impl<'a> Navigator<'a> {
             min_inliers: 4,
             ..RansacParams::default()
         };
-        let r = ransac_p3p(&self.camera, &pixels, &points, &rp).ok_or(fail)?;
+        let r = ransac_p3p(&self.camera, &pixels, &points, &rp).ok_or_else(fail)?;
         let in_px: Vec<Pixel> = pixels.iter().zip(&r.inliers).filter(|x| *x.1).map(|x| *x.0).collect();
         let in_pts: Vec<Vector3<f64>> =
             points.iter().zip(&r.inliers).filter(|x| *x.1).map(|x| *x.0).collect();
@@ -1143,7 +1180,7 @@ impl<'a> Navigator<'a> {
             pixel_sigma: REFINE_SIGMA_PX * scale,
             ..RefineOptions::default()
         };
-        let mut refined = refine_pose(&self.camera, &in_px, &in_pts, &r.pose, &opts).ok_or(fail)?;
+        let mut refined = refine_pose(&self.camera, &in_px, &in_pts, &r.pose, &opts).ok_or_else(fail)?;
         let mut prior_loosened = false;
         if let Some(p) = prior {
             // Gated with the floor: the image may disagree with the gyro by what
@@ -1159,7 +1196,8 @@ impl<'a> Navigator<'a> {
                 debug!("level {level}: attitude {d2:.0} chi2 from the gyro prior, prior loosened");
                 let loose = AttitudePrior { covariance: p.covariance * 1e4, ..*p };
                 let opts = RefineOptions { prior: Some(loose), ..opts };
-                refined = refine_pose(&self.camera, &in_px, &in_pts, &refined.pose, &opts).ok_or(fail)?;
+                refined =
+                    refine_pose(&self.camera, &in_px, &in_pts, &refined.pose, &opts).ok_or_else(fail)?;
                 prior_loosened = true;
             }
         }
@@ -1329,7 +1367,7 @@ pub fn choose_lighting(suns: &[SunLight], sun: Option<&SunLight>) -> (u8, bool) 
 
 /// A pose from one frame before acceptance.
 /// A template found in the image.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, Default)]
 struct Match {
     /// Where the correlation put the template's centre (full-resolution pixels).
     pixel: Pixel,
@@ -1342,10 +1380,12 @@ struct Match {
 }
 
 /// Why a level or a frame gave no pose: too few matches, or no consensus
-/// among them (`matches` found).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+/// among them (`matches` found; at the full-resolution level, `found` holds
+/// them for a prior-gated update).
+#[derive(Clone, Debug, Default)]
 struct NoSolution {
     matches: usize,
+    found: Vec<Match>,
 }
 
 struct Solution {
@@ -1403,6 +1443,146 @@ pub fn inlier_spread(px: &[Pixel], w: f64, h: f64, grid: (usize, usize)) -> (usi
         seen[cy.min(gy - 1) * gx + cx.min(gx - 1)] = true;
     }
     (seen.iter().filter(|&&s| s).count(), minor.max(0.0).sqrt())
+}
+
+/// The tight filter's update from a frame without a fix (too few
+/// inliers, or spread too narrow to stand alone): each match is gated by
+/// its innovation against the filter's predicted pixel (chi-square, 2
+/// degrees of freedom), the survivors are refined with the prediction
+/// as the prior, the worst is dropped while one lies more than the gate
+/// from the result, and the whole set must pass the joint innovation
+/// test (99.9%) before the filter is conditioned on it. Returns
+/// the matches used (0: no update).
+fn prior_gated_update(
+    camera: &CameraModel,
+    q_imu_cam: &UnitQuaternion<f64>,
+    f: &mut InsFilter,
+    found: &[Match],
+) -> usize {
+    if found.len() < 3 {
+        return 0;
+    }
+    let q = *q_imu_cam;
+    let (pred, m) = f.apparent_pose(&q);
+    // Pixel of each landmark and its Jacobian in the pose [dtheta; dp].
+    let rows = |x: &Vector3<f64>| -> Option<(Pixel, SMatrix<f64, 2, 6>)> {
+        let at = trn_geodesy::Ecef(*x);
+        let p0 = pred.project(camera, &at)?;
+        let mut j = SMatrix::<f64, 2, 6>::zeros();
+        for k in 0..6 {
+            let mut d = Vector6::zeros();
+            d[k] = if k < 3 { 1e-6 } else { 1e-2 };
+            let p1 = crate::ins::perturb(&pred, &d).project(camera, &at)?;
+            j[(0, k)] = (p1.u - p0.u) / d[k];
+            j[(1, k)] = (p1.v - p0.v) / d[k];
+        }
+        Some((p0, j))
+    };
+    let mut used: Vec<(Match, SMatrix<f64, 2, 6>, Vector2<f64>, f64)> = found
+        .iter()
+        .filter_map(|mt| {
+            let (p0, j) = rows(&mt.point_ecef)?;
+            let sigma = (mt.sigma_px.powi(2) + GATED_SIGMA_FLOOR_PX.powi(2)).sqrt();
+            let r = Vector2::new(mt.pixel.u - p0.u, mt.pixel.v - p0.v);
+            let predicted = j * m * j.transpose();
+            // A prediction this uncertain gates nothing: any texture near
+            // it would pass.
+            if predicted.symmetric_eigenvalues().max() > GATED_MAX_PREDICTED_SIGMA_PX.powi(2) {
+                return None;
+            }
+            let s = predicted + Matrix2::identity() * sigma * sigma;
+            let d2 = r.dot(&(s.try_inverse()? * r));
+            (d2 <= GATE_CHI2_2DOF).then_some((*mt, j, r, sigma))
+        })
+        .collect();
+    loop {
+        if used.len() < 3 {
+            return 0;
+        }
+        let px: Vec<Pixel> = used.iter().map(|u| u.0.pixel).collect();
+        let pts: Vec<Vector3<f64>> = used.iter().map(|u| u.0.point_ecef).collect();
+        let sig: Vec<f64> = used.iter().map(|u| u.3).collect();
+        let opts = RefineOptions {
+            pose_prior: Some(PosePrior { pose: pred, covariance: m }),
+            ..RefineOptions::default()
+        };
+        let Some(r) = refine_pose_weighted(camera, &px, &pts, Some(&sig), &pred, &opts) else { return 0 };
+        let worst = r
+            .residuals_px
+            .iter()
+            .zip(&sig)
+            .map(|(e, s)| (e / s).powi(2))
+            .enumerate()
+            .max_by(|a, b| a.1.total_cmp(&b.1))
+            .expect("three or more");
+        if worst.1 > GATE_CHI2_2DOF {
+            used.swap_remove(worst.0);
+            continue;
+        }
+        // The joint innovation: every residual against the prediction,
+        // with the pose uncertainty they share.
+        let n = used.len();
+        let mut s = DMatrix::<f64>::zeros(2 * n, 2 * n);
+        let mut y = DVector::<f64>::zeros(2 * n);
+        for (a, ua) in used.iter().enumerate() {
+            y[2 * a] = ua.2.x;
+            y[2 * a + 1] = ua.2.y;
+            for (b, ub) in used.iter().enumerate() {
+                let c = ua.1 * m * ub.1.transpose();
+                for i in 0..2 {
+                    for k in 0..2 {
+                        s[(2 * a + i, 2 * b + k)] = c[(i, k)];
+                    }
+                }
+            }
+            s[(2 * a, 2 * a)] += ua.3 * ua.3;
+            s[(2 * a + 1, 2 * a + 1)] += ua.3 * ua.3;
+        }
+        let Some(chol) = s.cholesky() else { return 0 };
+        let chi2 = y.dot(&chol.solve(&y));
+        let limit = chi2_quantile(2 * n, JOINT_GATE_P_Z);
+        if chi2 > limit {
+            debug!("prior-gated update refused: {n} matches, joint chi2 {chi2:.1} > {limit:.1}");
+            return 0;
+        }
+        return if f.condition_on_pose(&q, &r.pose, &r.covariance) { n } else { 0 };
+    }
+}
+
+/// Every match of a solution (inliers or not) as found.
+fn matches_of(sol: &Solution) -> Vec<Match> {
+    sol.records
+        .iter()
+        .filter_map(|r| {
+            Some(Match {
+                pixel: Pixel::new(r.u, r.v),
+                point_ecef: r.landmark_ecef?.0,
+                landmark: r.landmark,
+                predicted: Pixel::new(r.pred_u, r.pred_v),
+                sigma_px: r.sigma_px.unwrap_or(0.0),
+            })
+        })
+        .collect()
+}
+
+/// 99% of chi-square with 2 degrees of freedom: a match's innovation gate.
+const GATE_CHI2_2DOF: f64 = 9.21;
+/// What every match of a prior-gated update shares on top of its peak's
+/// sigma (px): the inliers' residuals on the realistic flights are 0.2-0.6 px
+/// RMS, from the map and the warp.
+const GATED_SIGMA_FLOOR_PX: f64 = 0.4;
+/// A match whose predicted pixel is more uncertain than this (px, 1 sigma
+/// along its worst direction) takes no part in a prior-gated update.
+const GATED_MAX_PREDICTED_SIGMA_PX: f64 = 4.0;
+/// The prior-gated update's joint test at 99.9% (the normal quantile).
+const JOINT_GATE_P_Z: f64 = 3.09;
+
+/// Chi-square quantile with `k` degrees of freedom at the normal quantile
+/// `z` (Wilson-Hilferty: within 1% for k >= 3 at 99.9%).
+fn chi2_quantile(k: usize, z: f64) -> f64 {
+    let k = k as f64;
+    let a = 2.0 / (9.0 * k);
+    k * (1.0 - a + z * a.sqrt()).powi(3)
 }
 
 /// The inliers' pixels and landmarks (ECEF).
@@ -1493,6 +1673,100 @@ fn velocity_fit(fixes: &std::collections::VecDeque<(f64, Vector3<f64>)>) -> Opti
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::ins;
+    use trn_geodesy::{Ecef, Enu, Geodetic, LocalFrame};
+
+    /// A nadir camera 5 km above the ground, the inertial filter's estimate
+    /// 30 m east of it, and ground landmarks seen in a small central box.
+    fn gated_scene() -> (CameraModel, InsFilter, LocalFrame, CameraPose, Vec<Vector3<f64>>) {
+        let camera = CameraModel::from_fov(640, 480, 40.0);
+        let frame = LocalFrame::at(Geodetic::new(37.0, -118.0, 0.0));
+        let truth = CameraPose::look_at(
+            frame.to_ecef(Enu::new(0.0, 0.0, 5000.0)),
+            frame.to_ecef(Enu::new(0.0, 0.0, 0.0)),
+            frame.r_ecef_enu().column(1).into_owned(),
+        );
+        let state = InsState {
+            t: 0.0,
+            position: frame.to_ecef(Enu::new(30.0, 0.0, 5000.0)),
+            velocity_ecef_m_s: Vector3::zeros(),
+            q_ecef_imu: truth.q_ecef_cam,
+            gyro_bias_imu_rad_s: Vector3::zeros(),
+            accel_bias_imu_m_s2: Vector3::zeros(),
+            map_offset_ecef_m: Vector3::zeros(),
+            time_offset_s: 0.0,
+            rate_ecef_rad_s: Vector3::zeros(),
+        };
+        let init = InsInit {
+            attitude_rad: 0.02f64.to_radians(),
+            // 3.5 px at 5 km: the prediction gates (see GATED_MAX_PREDICTED_SIGMA_PX).
+            position_m: 20.0,
+            velocity_m_s: 1.0,
+            gyro_bias_rad_s: 1e-5,
+            accel_bias_m_s2: 0.01,
+            time_offset_s: 0.0,
+        };
+        let errors = InsErrors {
+            gyro_arw_rad_sqrt_s: 1e-5,
+            gyro_bias_walk_rad_s_sqrt_s: 0.0,
+            accel_vrw_m_s_sqrt_s: 1e-3,
+            accel_bias_walk_m_s2_sqrt_s: 0.0,
+            free_accel_m_s2_sqrt_s: 1.0,
+            map_sigma_m: 0.0,
+            map_tau_s: 10.0,
+        };
+        // Within +-300 m of the nadir point: +-38 px of a 640 x 480 image.
+        let points = [(-250.0, -200.0), (240.0, -180.0), (0.0, 260.0), (-120.0, 90.0), (200.0, 150.0)]
+            .iter()
+            .map(|&(e, n)| frame.to_ecef(Enu::new(e, n, 0.0)).0)
+            .collect();
+        (camera, InsFilter::new(state, &init, errors), frame, truth, points)
+    }
+
+    fn seen(camera: &CameraModel, truth: &CameraPose, points: &[Vector3<f64>]) -> Vec<Match> {
+        points
+            .iter()
+            .enumerate()
+            .map(|(i, p)| Match {
+                pixel: truth.project(camera, &Ecef(*p)).expect("in view"),
+                point_ecef: *p,
+                landmark: i as i64,
+                sigma_px: 0.1,
+                ..Match::default()
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_few_matches_update_the_tight_filter_and_a_wrong_one_is_dropped() {
+        let (camera, mut f, frame, truth, points) = gated_scene();
+        let east = |f: &InsFilter| frame.to_enu(&f.state.position).0.x;
+        let mut found = seen(&camera, &truth, &points);
+        // One match 12 px off (a repeated texture).
+        found[2].pixel.u += 12.0;
+        let q = UnitQuaternion::identity();
+        let n = prior_gated_update(&camera, &q, &mut f, &found);
+        assert_eq!(n, 4, "the wrong match is dropped");
+        assert!(east(&f).abs() < 3.0, "30 m east before, {:.1} m after", east(&f));
+        assert!(f.covariance[(ins::POS, ins::POS)] < 30.0f64.powi(2));
+        // Two matches say too little, and a prediction as uncertain as 100 m
+        // gates nothing: nothing changes.
+        let (_, mut g, _, _, _) = gated_scene();
+        let before = g.clone();
+        assert_eq!(prior_gated_update(&camera, &q, &mut g, &found[..2]), 0);
+        assert_eq!(g, before);
+        for i in 3..6 {
+            g.covariance[(i, i)] = 100.0f64.powi(2);
+        }
+        let before = g.clone();
+        assert_eq!(prior_gated_update(&camera, &q, &mut g, &seen(&camera, &truth, &points)), 0);
+        assert_eq!(g, before);
+        // Matches that all disagree with the prediction (a guess far off
+        // its covariance): refused as a whole.
+        let (_, mut h, _, _, _) = gated_scene();
+        let far = CameraPose { position: frame.to_ecef(Enu::new(400.0, 0.0, 5000.0)), ..truth };
+        assert_eq!(prior_gated_update(&camera, &q, &mut h, &seen(&camera, &far, &points)), 0);
+    }
 
     fn solution_of(matches: &[(f64, Option<f64>, bool)]) -> Solution {
         let records = matches

@@ -367,6 +367,10 @@ struct NavigateArgs {
     /// error allowed for in the focal length's evidence).
     #[arg(long)]
     estimate_principal_point: bool,
+    /// Radial distortion k1 error of camera.json (1 sigma): with it, the
+    /// self-calibration estimates k1 too; 0 (default) trusts camera.json's.
+    #[arg(long, default_value_t = 0.0)]
+    k1_sigma: f64,
     /// Height error of the database's landmarks (m, 1 sigma), allowed for in
     /// the focal length's evidence.
     #[arg(long, default_value_t = 20.0)]
@@ -662,6 +666,7 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
         focal_sigma_rel: a.focal_sigma / 100.0,
         principal_sigma_px: a.principal_point_sigma,
         principal_point: a.estimate_principal_point,
+        k1_sigma: a.k1_sigma,
         landmark_height_sigma_m: a.landmark_height_sigma,
         max_frame_sigma_rel: a.calibration_frame_sigma / 100.0,
         ..Default::default()
@@ -744,9 +749,11 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
     }
     if let Some(c) = &report.calibration {
         tracing::info!(
-            "self-calibration: focal length {:+.3}% +- {:.3}% of camera.json's ({} fixes used, {} too weak, {} refused)",
+            "self-calibration: focal length {:+.3}% +- {:.3}% of camera.json's, k1 {:+.5} +- {:.5} ({} fixes used, {} too weak, {} refused)",
             c.focal_rel * 100.0,
             c.focal_sigma_rel * 100.0,
+            c.k1,
+            c.k1_sigma,
             c.frames_used,
             c.frames_weak,
             c.frames_refused

@@ -1,29 +1,37 @@
-//! Online self-calibration of the camera: focal length and principal point
-//! as filter states with priors around `camera.json`, updated by every
-//! accepted fix with what its matches say about them once the pose is
-//! eliminated ([`trn_vision::calib::frame_calibration`]).
+//! Online self-calibration of the camera: focal length, principal point and
+//! the first radial distortion coefficient as filter states with priors
+//! around `camera.json`, updated by every accepted fix with what its matches
+//! say about them once the pose is eliminated
+//! ([`trn_vision::calib::frame_calibration`]).
 //!
 //! A 0.3% focal error moves a solved position by 0.3% of the range (90 m at
 //! 30 km) for any navigator that trusts the nominal camera; relief in view
-//! tells the two apart (see `trn_vision::calib`). The state is
-//! `x = [focal_rel, du_px, dv_px]` (the true camera is the nominal one with
-//! `fx, fy` times `1 + focal_rel` and the principal point moved by
-//! `(du, dv)`), with covariance `P`, a random walk between frames (a lens
-//! warming up), and per accepted frame an information-form update
-//! (one Gauss-Newton step of the frame's cost from the current estimate):
+//! tells the two apart (see `trn_vision::calib`). A `k1` error of 0.002 moves
+//! a 60-degree camera's corners by 0.7 px, tens of metres at the far edge of
+//! an oblique view. The state is `x = [focal_rel, du_px, dv_px, k1]` (the
+//! true camera is the nominal one with `fx, fy` times `1 + focal_rel`, the
+//! principal point moved by `(du, dv)` and `k1` added), with covariance `P`,
+//! a random walk between frames (a lens warming up), and per accepted frame
+//! an information-form update of the states estimated (`E`; one Gauss-Newton
+//! step of the frame's cost from the current estimate), the others (`M`)
+//! eliminated with their priors `L` (consider parameters):
 //!
 //! ```text
-//! P+ = (P^-1 + T H T)^-1,   x+ = x - P+ T g,   T = diag(1 / (1 + focal_rel), 1, 1)
+//! H' = H_EE - H_EM (H_MM + L)^-1 H_ME,   g' = g_E - H_EM (H_MM + L)^-1 g_M
+//! P_E+ = (P_E^-1 + T H' T)^-1,   x_E+ = x_E - P_E+ T g',   T = diag(1 / (1 + focal_rel), 1, ...)
 //! ```
 //!
 //! (`H`, `g`: the frame's information and gradient, relative to the current
-//! camera, so `T` maps them onto the state). The frame's evidence is weighed
+//! camera, so `T` maps them onto the state). The focal length is estimated
+//! by default, the principal point and `k1` only on request (a nadir view
+//! cannot tell the principal point from a tilt, and on the realistic flights
+//! the database's errors pass for both). The frame's evidence is weighed
 //! with the larger of the nominal pixel sigma and its inliers' RMS
 //! residual, and a frame whose own estimate disagrees with the state beyond
-//! [`FRAME_GATE_CHI2`] is not used: relief that the database has wrong
+//! the 99.9% chi-square gate is not used: relief that the database has wrong
 //! shows up as a focal error, and one frame of bad heights must not move it.
 
-use nalgebra::{Matrix3, Vector3};
+use nalgebra::{DMatrix, DVector, Matrix4, Vector4};
 use trn_camera::CameraModel;
 use trn_camera::IntrinsicsCorrection;
 use trn_vision::calib::FrameCalibration;
@@ -35,6 +43,10 @@ pub struct CalibrationParams {
     pub focal_sigma_rel: f64,
     /// Principal point error of `camera.json` (pixels, each axis).
     pub principal_sigma_px: f64,
+    /// Radial distortion `k1` error of `camera.json`: `k1` is estimated
+    /// with this prior; 0 (the default): trusted. (On the realistic flights
+    /// the map's errors pass for distortion: see the README.)
+    pub k1_sigma: f64,
     /// Random walk of the focal length (relative, per sqrt(s)).
     pub focal_walk_rel_sqrt_s: f64,
     /// Random walk of the principal point (pixels per sqrt(s)).
@@ -53,7 +65,7 @@ pub struct CalibrationParams {
     /// an independent one (at most one).
     pub correlation_s: f64,
     /// Estimate the principal point too; otherwise it stays `camera.json`'s
-    /// and only the focal length is estimated.
+    /// and only its prior enters (as a consider parameter).
     pub principal_point: bool,
 }
 
@@ -62,6 +74,7 @@ impl Default for CalibrationParams {
         Self {
             focal_sigma_rel: 0.005,
             principal_sigma_px: 3.0,
+            k1_sigma: 0.0,
             // 0.06% per hour: a lens through a stratospheric day.
             focal_walk_rel_sqrt_s: 1e-5,
             principal_walk_px_sqrt_s: 1e-3,
@@ -73,18 +86,22 @@ impl Default for CalibrationParams {
     }
 }
 
-/// A frame's own estimate farther than this from the state (squared
-/// Mahalanobis distance with the state's and the frame's covariances, 3
-/// degrees of freedom, 99.9%) is not used.
-pub const FRAME_GATE_CHI2: f64 = 16.27;
+/// 99.9% of chi-square with 1 to 4 degrees of freedom: a frame's own
+/// estimate farther than this from the state (squared Mahalanobis distance
+/// with the state's and the frame's covariances) is not used.
+pub const FRAME_GATE_CHI2: [f64; 4] = [10.83, 13.82, 16.27, 18.47];
+
+/// Index of each intrinsic in the state.
+const FOCAL: usize = 0;
+const K1: usize = 3;
 
 /// The calibration estimate (see the module docs).
 #[derive(Clone, Debug)]
 pub struct CalibrationFilter {
     nominal: CameraModel,
     params: CalibrationParams,
-    x: Vector3<f64>,
-    p: Matrix3<f64>,
+    x: Vector4<f64>,
+    p: Matrix4<f64>,
     t: Option<f64>,
     /// When the last frame's evidence was used.
     last_update_t: Option<f64>,
@@ -98,36 +115,62 @@ pub struct CalibrationFilter {
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct CalibrationStep {
     /// Change of the correction relative to the camera the frame was solved
-    /// with (`[focal_rel of that camera, du, dv]`): the pose follows it by
+    /// with (`[focal_rel of that camera, du, dv, k1]`): the pose follows it by
     /// `FrameCalibration::pose_sensitivity * step`.
-    pub relative: Vector3<f64>,
-    /// The frame's disagreement with the state before the update (chi-square, 3 dof).
+    pub relative: Vector4<f64>,
+    /// The frame's disagreement with the state before the update (chi-square,
+    /// as many degrees of freedom as states estimated).
     pub chi2: f64,
 }
 
 impl CalibrationFilter {
     pub fn new(nominal: CameraModel, params: CalibrationParams) -> Self {
-        let pp_var = if params.principal_point { params.principal_sigma_px.powi(2) } else { 0.0 };
-        let p = Matrix3::from_diagonal(&Vector3::new(params.focal_sigma_rel.powi(2), pp_var, pp_var));
-        Self {
+        let mut f = Self {
             nominal,
             params,
-            x: Vector3::zeros(),
-            p,
+            x: Vector4::zeros(),
+            p: Matrix4::zeros(),
             t: None,
             last_update_t: None,
             updates: 0,
             refused: 0,
             weak: 0,
+        };
+        for i in 0..4 {
+            if f.estimated(i) {
+                f.p[(i, i)] = f.prior_var(i);
+            }
+        }
+        f
+    }
+
+    /// The prior variance of intrinsic `i` (camera.json's error).
+    fn prior_var(&self, i: usize) -> f64 {
+        let c = &self.params;
+        match i {
+            FOCAL => c.focal_sigma_rel.powi(2),
+            K1 => c.k1_sigma.powi(2),
+            _ => c.principal_sigma_px.powi(2),
         }
     }
 
+    /// Whether intrinsic `i` is a state (else a consider parameter, or
+    /// trusted when its prior is 0).
+    fn estimated(&self, i: usize) -> bool {
+        match i {
+            FOCAL => true,
+            K1 => self.params.k1_sigma > 0.0,
+            _ => self.params.principal_point,
+        }
+    }
+
+    /// The current correction of `camera.json`.
     pub fn correction(&self) -> IntrinsicsCorrection {
         IntrinsicsCorrection::from_vector(&self.x)
     }
 
-    /// Covariance of `[focal_rel, du_px, dv_px]`.
-    pub fn covariance(&self) -> Matrix3<f64> {
+    /// Covariance of the correction (zero rows for what is not estimated).
+    pub fn covariance(&self) -> Matrix4<f64> {
         self.p
     }
 
@@ -136,11 +179,11 @@ impl CalibrationFilter {
         self.correction().apply(&self.nominal)
     }
 
-    /// Adds the random walk up to `t`.
+    /// The random walk up to `t` (s).
     pub fn propagate(&mut self, t: f64) {
         if let Some(t0) = self.t {
             let dt = (t - t0).max(0.0);
-            self.p[(0, 0)] += self.params.focal_walk_rel_sqrt_s.powi(2) * dt;
+            self.p[(FOCAL, FOCAL)] += self.params.focal_walk_rel_sqrt_s.powi(2) * dt;
             if self.params.principal_point {
                 self.p[(1, 1)] += self.params.principal_walk_px_sqrt_s.powi(2) * dt;
                 self.p[(2, 2)] += self.params.principal_walk_px_sqrt_s.powi(2) * dt;
@@ -149,23 +192,24 @@ impl CalibrationFilter {
         self.t = Some(self.t.map_or(t, |t0| t0.max(t)));
     }
 
-    /// `T`: state change per unit of the frame's relative correction, inverted.
-    fn to_state(&self) -> Matrix3<f64> {
-        Matrix3::from_diagonal(&Vector3::new(1.0 / (1.0 + self.x.x), 1.0, 1.0))
+    /// Maps a frame's relative correction onto the state (see the module docs).
+    fn to_state(&self) -> Matrix4<f64> {
+        Matrix4::from_diagonal(&Vector4::new(1.0 / (1.0 + self.x[FOCAL]), 1.0, 1.0, 1.0))
     }
 
     /// Covariance of the pose `[dtheta; dp]` that the calibration's
     /// uncertainty adds to a frame solved with [`Self::camera`]: the
-    /// estimate's, and a principal point not estimated with its prior
-    /// (a consider parameter: a nadir view turns its error into a tilt, and
-    /// the tilt into a horizontal shift).
+    /// estimate's, and what is not estimated with its prior (a consider
+    /// parameter: a nadir view turns a principal point error into a tilt,
+    /// and the tilt into a horizontal shift).
     pub fn pose_covariance(&self, frame: &FrameCalibration) -> nalgebra::Matrix6<f64> {
         // A state change dx is the frame's relative correction T dx.
         let s = frame.pose_sensitivity * self.to_state();
         let mut p = self.p;
-        if !self.params.principal_point {
-            p[(1, 1)] = self.params.principal_sigma_px.powi(2);
-            p[(2, 2)] = self.params.principal_sigma_px.powi(2);
+        for i in 0..4 {
+            if !self.estimated(i) {
+                p[(i, i)] = self.prior_var(i);
+            }
         }
         s * p * s.transpose()
     }
@@ -174,36 +218,50 @@ impl CalibrationFilter {
         &self.params
     }
 
-    /// The frame's own focal estimate (relative to the camera it was solved
-    /// with) and its sigma; with the principal point not estimated, its
-    /// prior uncertainty is marginalised (a consider parameter), so its
-    /// error does not pass for a focal one.
+    /// The frame's own estimate of the focal correction (relative to the
+    /// camera it was solved with) and its sigma, every other intrinsic
+    /// eliminated with its prior.
     pub fn frame_focal(&self, frame: &FrameCalibration) -> (f64, f64) {
-        let (h, g) = self.focal_evidence(frame);
+        let (h, g) = self.eliminated(frame, &[FOCAL], |i| i != FOCAL);
+        let (h, g) = (h[(0, 0)], g[0]);
         (-g / h, h.recip().sqrt())
     }
 
-    /// Information and gradient of the relative focal correction alone.
-    fn focal_evidence(&self, frame: &FrameCalibration) -> (f64, f64) {
+    /// The frame's information and gradient on the intrinsics `keep`, with
+    /// those for which `marginal` holds eliminated through their prior
+    /// (Schur complement); the rest ignored (trusted).
+    fn eliminated(
+        &self,
+        frame: &FrameCalibration,
+        keep: &[usize],
+        marginal: impl Fn(usize) -> bool,
+    ) -> (DMatrix<f64>, DVector<f64>) {
         let h = &frame.information;
         let g = &frame.gradient;
-        let mut h_pp = h.fixed_view::<2, 2>(1, 1).into_owned();
-        let lambda = self.params.principal_sigma_px.powi(-2);
-        h_pp[(0, 0)] += lambda;
-        h_pp[(1, 1)] += lambda;
-        let h_fp = h.fixed_view::<1, 2>(0, 1).into_owned();
-        match h_pp.try_inverse() {
-            Some(inv) => (
-                h[(0, 0)] - (h_fp * inv * h_fp.transpose())[(0, 0)],
-                g.x - (h_fp * inv * g.fixed_rows::<2>(1))[(0, 0)],
-            ),
-            None => (h[(0, 0)], g.x),
+        let m: Vec<usize> =
+            (0..4).filter(|&i| !keep.contains(&i) && marginal(i) && self.prior_var(i) > 0.0).collect();
+        let sub = |rows: &[usize], cols: &[usize]| {
+            DMatrix::from_fn(rows.len(), cols.len(), |a, b| h[(rows[a], cols[b])])
+        };
+        let h_ee = sub(keep, keep);
+        let g_e = DVector::from_fn(keep.len(), |a, _| g[keep[a]]);
+        if m.is_empty() {
+            return (h_ee, g_e);
+        }
+        let mut h_mm = sub(&m, &m);
+        for (a, &i) in m.iter().enumerate() {
+            h_mm[(a, a)] += 1.0 / self.prior_var(i);
+        }
+        let h_em = sub(keep, &m);
+        let g_m = DVector::from_fn(m.len(), |a, _| g[m[a]]);
+        match h_mm.try_inverse() {
+            Some(inv) => (&h_ee - &h_em * &inv * h_em.transpose(), &g_e - &h_em * inv * g_m),
+            None => (h_ee, g_e),
         }
     }
 
-    /// Updates with one frame's evidence at `t`, computed at
-    /// [`Self::camera`]. `None` when the frame was too weak or refused
-    /// (gate, or a singular system).
+    /// One frame's update (see the module docs); `None` when the frame is
+    /// too weak or refused by the gate (nothing changes).
     pub fn update(&mut self, t_frame: f64, frame: &FrameCalibration) -> Option<CalibrationStep> {
         let (_, frame_sigma) = self.frame_focal(frame);
         if !(frame_sigma <= self.params.max_frame_sigma_rel) {
@@ -216,64 +274,63 @@ impl CalibrationFilter {
             }
             _ => 1.0,
         };
+        let e: Vec<usize> = (0..4).filter(|&i| self.estimated(i)).collect();
+        let n = e.len();
+        let (h_rel, g_rel) = self.eliminated(frame, &e, |i| !self.estimated(i));
+        // Onto the state: T (diagonal) on the estimated rows and columns.
         let t = self.to_state();
-        let (mut h, mut g) = (t * frame.information * t * weight, t * frame.gradient * weight);
-        if !self.params.principal_point {
-            let (hf, gf) = self.focal_evidence(frame);
-            h = Matrix3::from_diagonal(&Vector3::new(hf * t[(0, 0)].powi(2) * weight, 0.0, 0.0));
-            g = Vector3::new(gf * t[(0, 0)] * weight, 0.0, 0.0);
-        }
-        let (p_new, dx) = if self.params.principal_point {
-            let p_new = (self.p.try_inverse()? + h).try_inverse()?;
-            let p_new = (p_new + p_new.transpose()) * 0.5;
-            (p_new, -p_new * g)
-        } else {
-            let mut p_new = self.p;
-            p_new[(0, 0)] = 1.0 / (1.0 / self.p[(0, 0)] + h[(0, 0)]);
-            (p_new, Vector3::new(-p_new[(0, 0)] * g.x, 0.0, 0.0))
-        };
-        // The frame's innovation: its own estimate `-H^-1 g` against the
-        // state, covariance `H^-1 + P`. With `(H^-1 + P)^-1 = H - H P+ H`
-        // (Woodbury) the chi-square needs no inverse of a weak `H`:
-        // nu^T (H - H P+ H) nu with H nu = -g gives g^T H^-1 g - g^T P+ g,
-        // and H^-1 g is solved in the subspace `H` determines.
-        let eig = h.symmetric_eigen();
+        let td = DVector::from_fn(n, |a, _| t[(e[a], e[a])]);
+        let h = DMatrix::from_fn(n, n, |a, b| h_rel[(a, b)] * td[a] * td[b] * weight);
+        let g = DVector::from_fn(n, |a, _| g_rel[a] * td[a] * weight);
+        let p_e = DMatrix::from_fn(n, n, |a, b| self.p[(e[a], e[b])]);
+        let p_new = (p_e.clone().try_inverse()? + &h).try_inverse()?;
+        let p_new = (&p_new + p_new.transpose()) * 0.5;
+        let dx = -&p_new * &g;
+        // The frame's disagreement with the state: its own minimum (a
+        // pseudo-inverse where it says nothing) against the posterior's.
+        let eig = h.clone().symmetric_eigen();
         let max = eig.eigenvalues.max().max(0.0);
         let mut h_inv_g = 0.0;
-        for i in 0..3 {
+        for i in 0..n {
             let l = eig.eigenvalues[i];
             if l > 1e-9 * max && l > 0.0 {
                 let c = eig.eigenvectors.column(i).dot(&g);
                 h_inv_g += c * c / l;
             }
         }
-        let chi2 = (h_inv_g - g.dot(&(p_new * g))).max(0.0);
-        if !(chi2 <= FRAME_GATE_CHI2) {
+        let chi2 = (h_inv_g - g.dot(&(&p_new * &g))).max(0.0);
+        if !(chi2 <= FRAME_GATE_CHI2[n - 1]) {
             self.refused += 1;
             return None;
         }
-        self.x += dx;
-        self.p = p_new;
+        let mut dx4 = Vector4::zeros();
+        for (a, &i) in e.iter().enumerate() {
+            dx4[i] = dx[a];
+            for (b, &j) in e.iter().enumerate() {
+                self.p[(i, j)] = p_new[(a, b)];
+            }
+        }
+        self.x += dx4;
         self.updates += 1;
         self.last_update_t = Some(t_frame);
-        Some(CalibrationStep { relative: t * dx, chi2 })
+        Some(CalibrationStep { relative: t * dx4, chi2 })
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use nalgebra::{SMatrix, UnitQuaternion};
+    use nalgebra::{SMatrix, UnitQuaternion, Vector3};
     use trn_camera::{CameraPose, Pixel};
     use trn_geodesy::{intersect_ellipsoid, Geodetic, LocalFrame};
     use trn_vision::calib::frame_calibration;
     use trn_vision::pnp::{refine_pose, RefineOptions};
 
-    fn frame(information: Matrix3<f64>, estimate: Vector3<f64>) -> FrameCalibration {
+    fn frame(information: Matrix4<f64>, estimate: Vector4<f64>) -> FrameCalibration {
         FrameCalibration {
             information,
             gradient: -information * estimate,
-            pose_sensitivity: SMatrix::<f64, 6, 3>::zeros(),
+            pose_sensitivity: SMatrix::<f64, 6, 4>::zeros(),
         }
     }
 
@@ -284,26 +341,26 @@ mod tests {
     #[test]
     fn a_frame_far_from_the_state_is_refused_and_a_weak_one_unused() {
         let mut f = CalibrationFilter::new(CameraModel::from_fov(1024, 768, 30.0), params());
-        let info = Matrix3::from_diagonal(&Vector3::new(1.0 / 0.0005f64.powi(2), 1.0, 1.0));
+        let info = Matrix4::from_diagonal(&Vector4::new(1.0 / 0.0005f64.powi(2), 1.0, 1.0, 1e6));
         for k in 0..20 {
             // The frame's estimate is relative to the camera it was solved with.
             let rel = 1.001 / (1.0 + f.correction().focal_rel) - 1.0;
-            f.update(k as f64, &frame(info, Vector3::new(rel, 0.0, 0.0))).unwrap();
+            f.update(k as f64, &frame(info, Vector4::new(rel, 0.0, 0.0, 0.0))).unwrap();
         }
         assert!((f.correction().focal_rel - 0.001).abs() < 1e-4, "{:?}", f.correction());
         let before = f.correction();
         // 5% of focal in one frame: bad heights, not the lens.
-        assert!(f.update(20.0, &frame(info, Vector3::new(0.05, 0.0, 0.0))).is_none());
+        assert!(f.update(20.0, &frame(info, Vector4::new(0.05, 0.0, 0.0, 0.0))).is_none());
         // A flat nadir view's 4% sigma says nothing worth using.
-        let weak = Matrix3::from_diagonal(&Vector3::new(1.0 / 0.04f64.powi(2), 1.0, 1.0));
-        assert!(f.update(21.0, &frame(weak, Vector3::new(0.01, 0.0, 0.0))).is_none());
+        let weak = Matrix4::from_diagonal(&Vector4::new(1.0 / 0.04f64.powi(2), 1.0, 1.0, 1e6));
+        assert!(f.update(21.0, &frame(weak, Vector4::new(0.01, 0.0, 0.0, 0.0))).is_none());
         assert_eq!(f.correction(), before);
         assert_eq!((f.updates, f.refused, f.weak), (20, 1, 1));
     }
 
     #[test]
     fn correlated_frames_count_once_per_correlation_time() {
-        let info = Matrix3::from_diagonal(&Vector3::new(1.0 / 0.001f64.powi(2), 1.0, 1.0));
+        let info = Matrix4::from_diagonal(&Vector4::new(1.0 / 0.001f64.powi(2), 1.0, 1.0, 1e6));
         let sigma_after = |correlation_s: f64| {
             let mut f = CalibrationFilter::new(
                 CameraModel::from_fov(1024, 768, 30.0),
@@ -311,7 +368,7 @@ mod tests {
             );
             // 2 Hz for 30 s.
             for k in 0..60 {
-                f.update(k as f64 * 0.5, &frame(info, Vector3::zeros())).unwrap();
+                f.update(k as f64 * 0.5, &frame(info, Vector4::zeros())).unwrap();
             }
             f.covariance()[(0, 0)].sqrt()
         };
@@ -331,10 +388,50 @@ mod tests {
     /// positions solved with its camera beat the nominal camera's.
     #[test]
     fn converges_on_a_known_focal_error_over_relief() {
+        let error = IntrinsicsCorrection { focal_rel: 0.003, ..Default::default() };
+        let (f, err_nominal, err_calibrated) =
+            fly_over_relief(error, CalibrationParams { correlation_s: 1.0, ..Default::default() });
+        let (est, sigma) = (f.correction().focal_rel, f.covariance()[(0, 0)].sqrt());
+        println!(
+            "focal {est:.5} +- {sigma:.5} (truth 0.003, {} frames used); mean position error {err_nominal:.1} m \
+             nominal, {err_calibrated:.1} m self-calibrated",
+            f.updates
+        );
+        assert!((est - 0.003).abs() < 3.0 * sigma && sigma < 0.0005, "{est} {sigma}");
+        assert!(err_calibrated < 0.5 * err_nominal, "{err_calibrated} {err_nominal}");
+    }
+
+    #[test]
+    fn converges_on_a_known_k1_error_with_the_focal_length() {
+        let error = IntrinsicsCorrection { focal_rel: 0.003, k1: 0.002, ..Default::default() };
+        let params = CalibrationParams { correlation_s: 1.0, k1_sigma: 0.005, ..Default::default() };
+        let (f, err_nominal, err_calibrated) = fly_over_relief(error, params);
+        let (c, p) = (f.correction(), f.covariance());
+        let (k1_sigma, focal_sigma) = (p[(3, 3)].sqrt(), p[(0, 0)].sqrt());
+        println!(
+            "k1 {:.5} +- {k1_sigma:.5} (truth 0.002), focal {:.5} +- {focal_sigma:.5}; position error \
+             {err_nominal:.1} m nominal, {err_calibrated:.1} m self-calibrated",
+            c.k1, c.focal_rel
+        );
+        assert!((c.k1 - 0.002).abs() < 3.0 * k1_sigma && k1_sigma < 0.0005, "{c:?} {k1_sigma}");
+        assert!((c.focal_rel - 0.003).abs() < 3.0 * focal_sigma, "{c:?} {focal_sigma}");
+        assert!(err_calibrated < 0.5 * err_nominal, "{err_calibrated} {err_nominal}");
+        // Not estimated, k1 stays camera.json's.
+        let (g, _, _) =
+            fly_over_relief(error, CalibrationParams { correlation_s: 1.0, ..Default::default() });
+        assert_eq!((g.correction().k1, g.covariance()[(3, 3)]), (0.0, 0.0));
+    }
+
+    /// 60 frames of an oblique camera with the `error` crossing relief, the
+    /// filter fed with each; returns it and the mean position error of the
+    /// frames solved with the nominal camera and with the filter's.
+    fn fly_over_relief(
+        error: IntrinsicsCorrection,
+        params: CalibrationParams,
+    ) -> (CalibrationFilter, f64, f64) {
         let nominal = CameraModel::from_fov(640, 480, 60.0);
-        let truth = IntrinsicsCorrection { focal_rel: 0.003, ..Default::default() }.apply(&nominal);
-        let mut f =
-            CalibrationFilter::new(nominal, CalibrationParams { correlation_s: 1.0, ..Default::default() });
+        let truth = error.apply(&nominal);
+        let mut f = CalibrationFilter::new(nominal, params);
         let mut seed = 5u64;
         let mut uniform = move || {
             seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
@@ -377,13 +474,6 @@ mod tests {
             let fc = frame_calibration(&camera, &pixels, &points, &solved, 0.17, 20.0, None).unwrap();
             f.update(t, &fc);
         }
-        let (est, sigma) = (f.correction().focal_rel, f.covariance()[(0, 0)].sqrt());
-        println!(
-            "focal {est:.5} +- {sigma:.5} (truth 0.003, {} frames used); mean position error {err_nominal:.1} m \
-             nominal, {err_calibrated:.1} m self-calibrated",
-            f.updates
-        );
-        assert!((est - 0.003).abs() < 3.0 * sigma && sigma < 0.0005, "{est} {sigma}");
-        assert!(err_calibrated < 0.5 * err_nominal, "{err_calibrated} {err_nominal}");
+        (f, err_nominal, err_calibrated)
     }
 }

@@ -129,6 +129,9 @@ impl RunOptions {
                     return bad(option, "must be a number > 0");
                 }
             }
+            if !(non_negative(c.k1_sigma) && c.k1_sigma <= 1.0) {
+                return bad("--k1-sigma", "must be a number in 0..=1");
+            }
             if !non_negative(c.landmark_height_sigma_m) {
                 return bad("--landmark-height-sigma", "must be metres >= 0");
             }
@@ -200,6 +203,10 @@ pub struct CalibrationReport {
     pub principal_du_px: f64,
     pub principal_dv_px: f64,
     pub principal_sigma_px: [f64; 2],
+    /// True minus camera.json's radial coefficient k1, and its sigma (0 when
+    /// not estimated).
+    pub k1: f64,
+    pub k1_sigma: f64,
     /// Accepted fixes that updated it, were refused by its gate, or were
     /// too weak to use.
     pub frames_used: usize,
@@ -216,6 +223,8 @@ impl CalibrationReport {
             principal_du_px: c.principal_du_px,
             principal_dv_px: c.principal_dv_px,
             principal_sigma_px: [p[(1, 1)].max(0.0).sqrt(), p[(2, 2)].max(0.0).sqrt()],
+            k1: c.k1,
+            k1_sigma: p[(3, 3)].max(0.0).sqrt(),
             frames_used: f.updates,
             frames_refused: f.refused,
             frames_weak: f.weak,

@@ -34,7 +34,7 @@
 //! assert!((cam.hfov_deg() - 60.0).abs() < 1e-9);
 //! ```
 
-use nalgebra::{Quaternion, UnitQuaternion, Vector3};
+use nalgebra::{Quaternion, UnitQuaternion, Vector4};
 
 mod model;
 mod pose;
@@ -55,8 +55,9 @@ pub fn quat_to_wxyz(q: &UnitQuaternion<f64>) -> [f64; 4] {
 }
 
 /// A correction of a camera's intrinsics: the focal lengths scaled by
-/// `1 + focal_rel` and the principal point moved by `(du, dv)` pixels (a
-/// calibration error, or a self-calibration's estimate of one).
+/// `1 + focal_rel`, the principal point moved by `(du, dv)` pixels and the
+/// first radial distortion coefficient changed by `k1` (a calibration error,
+/// or a self-calibration's estimate of one).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct IntrinsicsCorrection {
     /// Relative focal length change: `fx, fy` times `1 + focal_rel`.
@@ -64,15 +65,18 @@ pub struct IntrinsicsCorrection {
     /// Principal point shift along u and v (pixels).
     pub principal_du_px: f64,
     pub principal_dv_px: f64,
+    /// Change of the radial distortion coefficient `k1` (added).
+    pub k1: f64,
 }
 
 impl IntrinsicsCorrection {
-    pub fn to_vector(self) -> Vector3<f64> {
-        Vector3::new(self.focal_rel, self.principal_du_px, self.principal_dv_px)
+    /// `[focal_rel, du, dv, k1]`.
+    pub fn to_vector(self) -> Vector4<f64> {
+        Vector4::new(self.focal_rel, self.principal_du_px, self.principal_dv_px, self.k1)
     }
 
-    pub fn from_vector(v: &Vector3<f64>) -> Self {
-        Self { focal_rel: v.x, principal_du_px: v.y, principal_dv_px: v.z }
+    pub fn from_vector(v: &Vector4<f64>) -> Self {
+        Self { focal_rel: v.x, principal_du_px: v.y, principal_dv_px: v.z, k1: v.w }
     }
 
     /// `camera` with the correction applied.
@@ -82,6 +86,7 @@ impl IntrinsicsCorrection {
         m.fy *= 1.0 + self.focal_rel;
         m.cx += self.principal_du_px;
         m.cy += self.principal_dv_px;
+        m.distortion.k1 += self.k1;
         m
     }
 }

@@ -1,11 +1,14 @@
 //! What one frame's 2D-3D matches say about the camera's intrinsics, with
 //! the pose left free: the information and gradient of a small correction
-//! `[focal, principal point]` after the pose is eliminated (Schur
+//! `[focal, principal point, k1]` after the pose is eliminated (Schur
 //! complement), so a filter can accumulate it over frames (self-calibration).
 //!
 //! Model: the true camera is the given one with `fx, fy` scaled by
-//! `1 + focal_rel` and the principal point moved by `(du, dv)` pixels, i.e.
-//! `u = fx (1 + focal_rel) x'' + cx + du` (see `trn_camera`). For a pose and
+//! `1 + focal_rel`, the principal point moved by `(du, dv)` pixels and the
+//! radial coefficient `k1` changed by `dk1`, i.e.
+//! `u = fx (1 + focal_rel) x'' + cx + du` with `x''` distorted by `k1 + dk1`
+//! (`du/ddk1 = fx x' r^2`, `x'` the undistorted normalized coordinate; see
+//! `trn_camera`). For a pose and
 //! intrinsics solved together on one frame the normal equations are
 //!
 //! ```text
@@ -28,9 +31,11 @@
 //! camera ~380%, of a 90-degree camera ~20%). So the estimate leans on the
 //! landmarks' heights: relief the database has wrong biases it. The
 //! principal point is observable only where a shift of it differs from a
-//! rotation of the camera.
+//! rotation of the camera; `k1` wherever matches reach the field's edge
+//! (its pixel motion grows with the cube of the distance from the centre,
+//! which no pose change mimics).
 
-use nalgebra::{Matrix3, SMatrix, Vector3};
+use nalgebra::{Matrix4, SMatrix, Vector3, Vector4};
 pub use trn_camera::IntrinsicsCorrection;
 use trn_camera::{CameraModel, CameraPose, Pixel};
 use trn_geodesy::Ecef;
@@ -43,14 +48,14 @@ use crate::pnp::{huber, invert_normalized, linearize_point};
 #[derive(Clone, Debug, PartialEq)]
 pub struct FrameCalibration {
     /// Information (inverse covariance) of the correction from this frame.
-    pub information: Matrix3<f64>,
+    pub information: Matrix4<f64>,
     /// Gradient of half the frame's cost with respect to the correction at
     /// zero, with the pose following: `-information^-1 * gradient` is the
     /// frame's own Gauss-Newton estimate of the correction.
-    pub gradient: Vector3<f64>,
+    pub gradient: Vector4<f64>,
     /// How the best pose `[dtheta (rad, ECEF); dp (m, ECEF)]` moves per unit
     /// of correction: `-H_pp^-1 H_pc`.
-    pub pose_sensitivity: SMatrix<f64, 6, 3>,
+    pub pose_sensitivity: SMatrix<f64, 6, 4>,
 }
 
 /// [`FrameCalibration`] of `camera` at `pose` from matched pixels and their
@@ -81,17 +86,21 @@ pub fn frame_calibration(
     }
     let r_cam_ecef = pose.q_ecef_cam.inverse().to_rotation_matrix().into_inner();
     let sigma2 = pixel_sigma * pixel_sigma;
-    let mut h = SMatrix::<f64, 9, 9>::zeros();
-    let mut g = SMatrix::<f64, 9, 1>::zeros();
+    let mut h = SMatrix::<f64, 10, 10>::zeros();
+    let mut g = SMatrix::<f64, 10, 1>::zeros();
     for (x, obs) in points_ecef.iter().zip(pixels) {
         let pt = linearize_point(camera, &r_cam_ecef, &(Ecef(*x).0 - pose.position.0), obs)?;
-        let mut j = SMatrix::<f64, 2, 9>::zeros();
+        let mut j = SMatrix::<f64, 2, 10>::zeros();
         j.fixed_view_mut::<2, 6>(0, 0).copy_from(&pt.j_pose);
         // u = fx (1 + f) x'' + cx + du, v = fy (1 + f) y'' + cy + dv.
         j[(0, 6)] = camera.fx * pt.distorted.x;
         j[(1, 6)] = camera.fy * pt.distorted.y;
         j[(0, 7)] = 1.0;
         j[(1, 8)] = 1.0;
+        let n = pt.normalized;
+        let r2 = n.x * n.x + n.y * n.y;
+        j[(0, 9)] = camera.fx * n.x * r2;
+        j[(1, 9)] = camera.fy * n.y * r2;
         // The pixel moves by -J_position * up per metre of the landmark's
         // height (up: the geocentric direction, close enough for a sigma).
         let up = x.normalize();
@@ -105,12 +114,12 @@ pub fn frame_calibration(
         g += j.transpose() * info * pt.residual_px * w;
     }
     let h_pp = h.fixed_view::<6, 6>(0, 0).into_owned();
-    let h_pc = h.fixed_view::<6, 3>(0, 6).into_owned();
-    let h_cc = h.fixed_view::<3, 3>(6, 6).into_owned();
+    let h_pc = h.fixed_view::<6, 4>(0, 6).into_owned();
+    let h_cc = h.fixed_view::<4, 4>(6, 6).into_owned();
     let pose_sensitivity = -invert_normalized(&h_pp)? * h_pc;
     let information = h_cc + h_pc.transpose() * pose_sensitivity;
     let g_p = g.fixed_rows::<6>(0).into_owned();
-    let gradient = g.fixed_rows::<3>(6).into_owned() + pose_sensitivity.transpose() * g_p;
+    let gradient = g.fixed_rows::<4>(6).into_owned() + pose_sensitivity.transpose() * g_p;
     Some(FrameCalibration {
         information: (information + information.transpose()) * 0.5,
         gradient,
@@ -135,7 +144,7 @@ mod tests {
     use crate::ransac::testutil::*;
 
     fn truth_error() -> IntrinsicsCorrection {
-        IntrinsicsCorrection { focal_rel: 0.003, principal_du_px: 1.5, principal_dv_px: -1.0 }
+        IntrinsicsCorrection { focal_rel: 0.003, principal_du_px: 1.5, principal_dv_px: -1.0, k1: 0.002 }
     }
 
     /// Gauss-Newton on pose and intrinsics together, alternating: the pose
@@ -146,7 +155,7 @@ mod tests {
         scene: &Scene,
         rounds: usize,
     ) -> (IntrinsicsCorrection, CameraPose, FrameCalibration) {
-        let mut corr = Vector3::zeros();
+        let mut corr = Vector4::zeros();
         let mut pose = scene.pose;
         let opts = RefineOptions::default();
         for _ in 0..rounds {
@@ -156,7 +165,12 @@ mod tests {
             let step = -fc.information.cholesky().unwrap().solve(&fc.gradient);
             pose = perturb_pose(&pose, &(fc.pose_sensitivity * step));
             // The step is relative to `cam`: compose the focal scales.
-            corr = Vector3::new((1.0 + corr.x) * (1.0 + step.x) - 1.0, corr.y + step.y, corr.z + step.z);
+            corr = Vector4::new(
+                (1.0 + corr.x) * (1.0 + step.x) - 1.0,
+                corr.y + step.y,
+                corr.z + step.z,
+                corr.w + step.w,
+            );
         }
         let cam = IntrinsicsCorrection::from_vector(&corr).apply(nominal);
         let fc = frame_calibration(&cam, &scene.pixels, &scene.points, &pose, 1.0, 0.0, None).unwrap();
@@ -164,7 +178,7 @@ mod tests {
     }
 
     #[test]
-    fn oblique_view_recovers_focal_and_principal_point() {
+    fn oblique_view_recovers_focal_principal_point_and_k1() {
         let nominal = CameraModel::from_fov(1024, 768, 60.0);
         let truth = truth_error().apply(&nominal);
         let mut rng = Rng::new(7);
@@ -183,6 +197,7 @@ mod tests {
             (est.principal_du_px - 1.5).abs() < 1e-4 && (est.principal_dv_px + 1.0).abs() < 1e-4,
             "{est:?}"
         );
+        assert!((est.k1 - 0.002).abs() < 1e-7, "{est:?}");
         assert!(pos_m < 1e-3, "{pos_m}");
     }
 
@@ -194,8 +209,8 @@ mod tests {
             let scene = tilted_scene(rng, &nominal, 20_000.0, 200, relief_m, tilt_deg);
             let fc = frame_calibration(&nominal, &scene.pixels, &scene.points, &scene.pose, 1.0, 0.0, None)
                 .unwrap();
-            // Focal-rel sigma from this frame (1 px pixels).
-            fc.information.try_inverse().unwrap()[(0, 0)].sqrt()
+            // Focal-rel sigma from this frame (1 px pixels), k1 known.
+            fc.information.fixed_view::<3, 3>(0, 0).into_owned().try_inverse().unwrap()[(0, 0)].sqrt()
         };
         let flat = info(0.0, 0.0, &mut rng);
         let relief = info(2000.0, 0.0, &mut rng);
@@ -205,7 +220,7 @@ mod tests {
             let scene = tilted_scene(&mut rng, &camera, 20_000.0, 200, 0.0, 30.0);
             let fc = frame_calibration(&camera, &scene.pixels, &scene.points, &scene.pose, 1.0, 0.0, None)
                 .unwrap();
-            fc.information.try_inverse().unwrap()[(0, 0)].sqrt()
+            fc.information.fixed_view::<3, 3>(0, 0).into_owned().try_inverse().unwrap()[(0, 0)].sqrt()
         };
         println!(
             "focal sigma per 1 px: flat nadir {flat:.2e}, 2 km relief {relief:.2e}, 30 deg oblique {oblique:.2e}, \

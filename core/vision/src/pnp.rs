@@ -446,6 +446,8 @@ pub(crate) struct PointLinearization {
     pub j_pose: SMatrix<f64, 2, 6>,
     /// The point's distorted normalized coordinates (`u = fx x + cx`).
     pub distorted: NormalizedPoint,
+    /// The point's normalized coordinates before distortion (`x/z, y/z`).
+    pub normalized: NormalizedPoint,
 }
 
 /// Residual and pose Jacobian of one match; `v` is the point minus the
@@ -477,7 +479,7 @@ pub(crate) fn linearize_point(
     let mut j = SMatrix::<f64, 2, 6>::zeros();
     j.fixed_view_mut::<2, 3>(0, 0).copy_from(&j_theta);
     j.fixed_view_mut::<2, 3>(0, 3).copy_from(&-b);
-    Some(PointLinearization { residual_px: r, j_pose: j, distorted: d })
+    Some(PointLinearization { residual_px: r, j_pose: j, distorted: d, normalized: n })
 }
 
 /// Huber loss `rho(e)` of a squared error `e2` with threshold `k` (none:

@@ -152,9 +152,9 @@ impl CameraError {
             focal_rel: self.focal_rel,
             principal_du_px: self.principal_du_px,
             principal_dv_px: self.principal_dv_px,
+            k1: self.k1,
         }
         .apply(nominal);
-        m.distortion.k1 += self.k1;
         m.distortion.k2 += self.k2;
         m
     }

@@ -6,8 +6,12 @@
 //! with horizon handling and angle filter), queries them from a
 //! [`LandmarkSource`], warps them into the image ([`predict`]), correlates
 //! them (NCC), and solves the pose with P3P RANSAC and PnP refinement
-//! (`trn-vision`), then accepts or rejects the fix. [`run_flight`] drives it
-//! over a flight folder and writes `poses.csv` and `matches.csv`.
+//! (`trn-vision`), then accepts or rejects the fix. With the inertial filter
+//! ([`ins`]) an accepted frame updates it tightly, a frame refused as a fix
+//! can still update it with the matches that agree with its prediction, and
+//! the camera's focal length is estimated in flight ([`calibration`]).
+//! [`run_flight`] drives it over a flight folder and writes `poses.csv` and
+//! `matches.csv`.
 //!
 //! ```
 //! use nalgebra::{UnitQuaternion, Vector3};

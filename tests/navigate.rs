@@ -23,11 +23,15 @@ fn navigate(s: &NavFixture, out: &Path, extra: &[&str]) -> std::process::Output 
 }
 
 fn evaluate(s: &NavFixture, poses: &Path) -> serde_json::Value {
-    let json = s.root().join("eval.json");
+    evaluate_flight(&s.flight, poses, &s.root().join("eval.json"))
+}
+
+/// `trn evaluate` of `poses` on `flight`, its JSON report written to `json`.
+fn evaluate_flight(flight: &Path, poses: &Path, json: &Path) -> serde_json::Value {
     let o = run(&[
         "evaluate",
         "--flight",
-        s.flight.to_str().unwrap(),
+        flight.to_str().unwrap(),
         "--poses",
         poses.to_str().unwrap(),
         "--json",
@@ -518,18 +522,7 @@ fn frames_seen_through_a_hole_in_the_cloud_still_update_the_tight_filter() {
         let o = run(&args);
         assert!(o.status.success(), "navigate failed: {}", stderr(&o));
         let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
-        let json = dir.join(format!("{name}.json"));
-        let o = run(&[
-            "evaluate",
-            "--flight",
-            flight.to_str().unwrap(),
-            "--poses",
-            poses.to_str().unwrap(),
-            "--json",
-            json.to_str().unwrap(),
-        ]);
-        assert!(o.status.success(), "evaluate failed: {}", stderr(&o));
-        let e: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(json).unwrap()).unwrap();
+        let e = evaluate_flight(&flight, &poses, &dir.join(format!("{name}.json")));
         let worst = e["runs"][0]["per_frame"]
             .as_array()
             .unwrap()

@@ -415,6 +415,9 @@ mod tests {
         o.params.calibration.as_mut().expect("self-calibration is on by default").focal_sigma_rel = 0.0;
         assert_eq!(refused(&o), "--focal-sigma");
         let mut o = defaults();
+        o.params.calibration.as_mut().expect("self-calibration is on by default").k1_sigma = -0.001;
+        assert_eq!(refused(&o), "--k1-sigma");
+        let mut o = defaults();
         (o.imu_rate, o.params.filter) = (true, FilterMode::Fixes);
         assert_eq!(refused(&o), "--imu-rate");
         o.params.filter = FilterMode::Loose;

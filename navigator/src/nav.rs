@@ -1157,8 +1157,10 @@ impl<'a> Navigator<'a> {
         prior: Option<&AttitudePrior>,
     ) -> Result<Solution, NoSolution> {
         let n = matches.len();
-        let found = if level == 0 { matches.to_vec() } else { Vec::new() };
-        let fail = || NoSolution { matches: n, found: found.clone() };
+        // Only a failure keeps the matches (the full-resolution level's, for
+        // a prior-gated update).
+        let fail =
+            || NoSolution { matches: n, found: if level == 0 { matches.to_vec() } else { Vec::new() } };
         if n < 4 {
             return Err(fail());
         }
@@ -1478,7 +1480,7 @@ fn prior_gated_update(
         }
         Some((p0, j))
     };
-    let mut used: Vec<(Match, SMatrix<f64, 2, 6>, Vector2<f64>, f64)> = found
+    let mut used: Vec<Gated> = found
         .iter()
         .filter_map(|mt| {
             let (p0, j) = rows(&mt.point_ecef)?;
@@ -1492,16 +1494,21 @@ fn prior_gated_update(
             }
             let s = predicted + Matrix2::identity() * sigma * sigma;
             let d2 = r.dot(&(s.try_inverse()? * r));
-            (d2 <= GATE_CHI2_2DOF).then_some((*mt, j, r, sigma))
+            (d2 <= GATE_CHI2_2DOF).then_some(Gated {
+                found: *mt,
+                jacobian: j,
+                innovation_px: r,
+                sigma_px: sigma,
+            })
         })
         .collect();
     loop {
         if used.len() < 3 {
             return 0;
         }
-        let px: Vec<Pixel> = used.iter().map(|u| u.0.pixel).collect();
-        let pts: Vec<Vector3<f64>> = used.iter().map(|u| u.0.point_ecef).collect();
-        let sig: Vec<f64> = used.iter().map(|u| u.3).collect();
+        let px: Vec<Pixel> = used.iter().map(|u| u.found.pixel).collect();
+        let pts: Vec<Vector3<f64>> = used.iter().map(|u| u.found.point_ecef).collect();
+        let sig: Vec<f64> = used.iter().map(|u| u.sigma_px).collect();
         let opts = RefineOptions {
             pose_prior: Some(PosePrior { pose: pred, covariance: m }),
             ..RefineOptions::default()
@@ -1525,18 +1532,18 @@ fn prior_gated_update(
         let mut s = DMatrix::<f64>::zeros(2 * n, 2 * n);
         let mut y = DVector::<f64>::zeros(2 * n);
         for (a, ua) in used.iter().enumerate() {
-            y[2 * a] = ua.2.x;
-            y[2 * a + 1] = ua.2.y;
+            y[2 * a] = ua.innovation_px.x;
+            y[2 * a + 1] = ua.innovation_px.y;
             for (b, ub) in used.iter().enumerate() {
-                let c = ua.1 * m * ub.1.transpose();
+                let c = ua.jacobian * m * ub.jacobian.transpose();
                 for i in 0..2 {
                     for k in 0..2 {
                         s[(2 * a + i, 2 * b + k)] = c[(i, k)];
                     }
                 }
             }
-            s[(2 * a, 2 * a)] += ua.3 * ua.3;
-            s[(2 * a + 1, 2 * a + 1)] += ua.3 * ua.3;
+            s[(2 * a, 2 * a)] += ua.sigma_px * ua.sigma_px;
+            s[(2 * a + 1, 2 * a + 1)] += ua.sigma_px * ua.sigma_px;
         }
         let Some(chol) = s.cholesky() else { return 0 };
         let chi2 = y.dot(&chol.solve(&y));
@@ -1547,6 +1554,17 @@ fn prior_gated_update(
         }
         return if f.condition_on_pose(&q, &r.pose, &r.covariance) { n } else { 0 };
     }
+}
+
+/// A match that passed its innovation gate in [`prior_gated_update`].
+struct Gated {
+    found: Match,
+    /// Its pixel's Jacobian in the pose `[dtheta; dp]` at the prediction.
+    jacobian: SMatrix<f64, 2, 6>,
+    /// Found minus predicted pixel (u, v).
+    innovation_px: Vector2<f64>,
+    /// Its pixel sigma (per coordinate).
+    sigma_px: f64,
 }
 
 /// Every match of a solution (inliers or not) as found.

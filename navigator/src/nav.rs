@@ -3,9 +3,7 @@
 
 use std::time::Instant;
 
-use nalgebra::{
-    DMatrix, DVector, Matrix2, Matrix3, Matrix6, SMatrix, UnitQuaternion, Vector2, Vector3, Vector6,
-};
+use nalgebra::{DMatrix, DVector, Matrix2, Matrix3, Matrix6, SMatrix, UnitQuaternion, Vector2, Vector3};
 use tracing::debug;
 use trn_camera::{CameraConfig, CameraModel, CameraPose, Pixel};
 use trn_flight::{FixStatus, ImuSample, MatchRecord, NavRecord, PoseCovariance, TimedPose};
@@ -14,7 +12,8 @@ use trn_landmark::Template;
 use trn_vision::calib::{frame_calibration, perturb_pose, FrameCalibration};
 use trn_vision::ncc::{self, ImageView, NccParams};
 use trn_vision::pnp::{
-    refine_pose, refine_pose_weighted, rotation_vector, AttitudePrior, PosePrior, RefineOptions, Refined,
+    project_with_jacobian, refine_pose, refine_pose_weighted, rotation_vector, AttitudePrior, PosePrior,
+    RefineOptions, Refined,
 };
 use trn_vision::ransac::{ransac_p3p, RansacParams};
 
@@ -1466,24 +1465,11 @@ fn prior_gated_update(
     }
     let q = *q_imu_cam;
     let (pred, m) = f.apparent_pose(&q);
-    // Pixel of each landmark and its Jacobian in the pose [dtheta; dp].
-    let rows = |x: &Vector3<f64>| -> Option<(Pixel, SMatrix<f64, 2, 6>)> {
-        let at = trn_geodesy::Ecef(*x);
-        let p0 = pred.project(camera, &at)?;
-        let mut j = SMatrix::<f64, 2, 6>::zeros();
-        for k in 0..6 {
-            let mut d = Vector6::zeros();
-            d[k] = if k < 3 { 1e-6 } else { 1e-2 };
-            let p1 = crate::ins::perturb(&pred, &d).project(camera, &at)?;
-            j[(0, k)] = (p1.u - p0.u) / d[k];
-            j[(1, k)] = (p1.v - p0.v) / d[k];
-        }
-        Some((p0, j))
-    };
     let mut used: Vec<Gated> = found
         .iter()
         .filter_map(|mt| {
-            let (p0, j) = rows(&mt.point_ecef)?;
+            // Its predicted pixel and Jacobian in the pose [dtheta; dp].
+            let (p0, j) = project_with_jacobian(camera, &pred, &mt.point_ecef)?;
             let sigma = (mt.sigma_px.powi(2) + GATED_SIGMA_FLOOR_PX.powi(2)).sqrt();
             let r = Vector2::new(mt.pixel.u - p0.u, mt.pixel.v - p0.v);
             let predicted = j * m * j.transpose();

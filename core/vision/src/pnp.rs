@@ -494,6 +494,22 @@ pub(crate) fn huber(e2: f64, k: Option<f64>) -> (f64, f64) {
     }
 }
 
+/// The pixel where `pose` sees `point_ecef` and its Jacobian in the pose
+/// perturbation `[dtheta (rad, ECEF); dp (m, ECEF)]` of this module
+/// (`q = exp(dtheta) q`, `c = c + dp`), through the full distortion model;
+/// `None` behind the camera. What a filter needs to carry a pose covariance
+/// into the image.
+pub fn project_with_jacobian(
+    camera: &CameraModel,
+    pose: &CameraPose,
+    point_ecef: &Vector3<f64>,
+) -> Option<(Pixel, SMatrix<f64, 2, 6>)> {
+    let r_cam_ecef = pose.q_ecef_cam.inverse().to_rotation_matrix().into_inner();
+    // The residual against pixel (0, 0) is the predicted pixel itself.
+    let pt = linearize_point(camera, &r_cam_ecef, &(point_ecef - pose.position.0), &Pixel::new(0.0, 0.0))?;
+    Some((Pixel::new(pt.residual_px.x, pt.residual_px.y), pt.j_pose))
+}
+
 /// Rotation vector (axis * angle, angle in `[0, pi]`) of a unit quaternion,
 /// accurate for small angles (nalgebra's `scaled_axis` goes through `acos`).
 pub fn rotation_vector(q: &UnitQuaternion<f64>) -> Vector3<f64> {
@@ -590,6 +606,29 @@ mod tests {
         camera.distortion = Distortion { k1: -0.2, k2: 0.05, p1: 0.001, p2: -0.0005, k3: 0.0 };
         camera.validate().unwrap();
         exact_case(&camera, 5000.0, 3, "60 deg 5 km distorted");
+    }
+
+    #[test]
+    fn projection_jacobian_matches_the_pose_perturbation() {
+        let mut camera = CameraModel::from_fov(640, 480, 70.0);
+        camera.distortion = Distortion { k1: -0.2, k2: 0.05, p1: 0.001, p2: -0.0005, k3: 0.01 };
+        let mut rng = Rng::new(9);
+        let scene = nadir_scene(&mut rng, &camera, 3000.0, 5, 300.0, 10.0);
+        for x in &scene.points {
+            let (px, j) = project_with_jacobian(&camera, &scene.pose, x).unwrap();
+            assert!(px.distance_px(&scene.pose.project(&camera, &Ecef(*x)).unwrap()) < 1e-9);
+            for k in 0..6 {
+                let h = if k < 3 { 1e-7 } else { 1e-3 };
+                let mut d = nalgebra::Vector6::zeros();
+                d[k] = h;
+                let plus = crate::calib::perturb_pose(&scene.pose, &d).project(&camera, &Ecef(*x)).unwrap();
+                let minus = crate::calib::perturb_pose(&scene.pose, &-d).project(&camera, &Ecef(*x)).unwrap();
+                let numeric = ((plus.u - minus.u) / (2.0 * h), (plus.v - minus.v) / (2.0 * h));
+                let scale = j.column(k).norm().max(1.0);
+                assert!((j[(0, k)] - numeric.0).abs() < 1e-5 * scale, "{k}: {} {}", j[(0, k)], numeric.0);
+                assert!((j[(1, k)] - numeric.1).abs() < 1e-5 * scale, "{k}: {} {}", j[(1, k)], numeric.1);
+            }
+        }
     }
 
     #[test]

@@ -340,11 +340,15 @@ struct NavigateArgs {
     /// Map offset of the inertial filter: how far the database's errors
     /// shift the fixes from the same landmarks (m, 1 sigma per axis; 0: not
     /// modelled) ...
-    #[arg(long, default_value_t = 20.0)]
+    #[arg(long, default_value_t = 40.0)]
     map_sigma: f64,
     /// ... and how long that shift stays alike (s).
     #[arg(long, default_value_t = 10.0)]
     map_tau: f64,
+    /// ... and the rotation they give the pose the images see (deg, 1 sigma
+    /// per axis; 0: not modelled): a narrow view trades a tilt for a shift.
+    #[arg(long, default_value_t = 0.1)]
+    map_att_sigma: f64,
     /// Camera-IMU time offset the inertial filter estimates: its prior
     /// (ms, 1 sigma; 0: the stamps are trusted).
     #[arg(long, default_value_t = 10.0)]
@@ -353,6 +357,11 @@ struct NavigateArgs {
     /// updates with their matches that agree with its prediction, 3 or more).
     #[arg(long)]
     no_prior_gated_update: bool,
+    /// Do not update the tight filter with the landmarks found in two
+    /// consecutive images (their motion in between: velocity, gyro bias,
+    /// time offset).
+    #[arg(long)]
+    no_track_update: bool,
     /// Trust camera.json's focal length instead of estimating it in flight.
     #[arg(long)]
     no_self_calibration: bool,
@@ -656,8 +665,10 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
     params.accel_bias_m_s2 = a.accel_bias;
     params.map_sigma_m = a.map_sigma;
     params.map_tau_s = a.map_tau;
+    params.map_att_sigma_deg = a.map_att_sigma;
     params.time_offset_sigma_s = a.time_offset_sigma / 1e3;
     params.prior_gated_update = !a.no_prior_gated_update;
+    params.track_update = !a.no_track_update;
     params.sun = a.sun;
     params.shading_weight = a.shading_weight;
     params.gyro_arw_deg_sqrt_s = a.gyro_arw / 60.0;
@@ -718,7 +729,7 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
     }
     let report = run.report;
     tracing::info!(
-        "{} of {} frames processed, {} fixes ({} rejected for too few inliers, {} for too small a share of inliers, {} for inliers on a line or in a cluster, {} for their height, {} as inconsistent with the inertial filter; {} frames without a fix updated the filter with their matches), median {:.1} ms per frame; wrote {}, {} and {}",
+        "{} of {} frames processed, {} fixes ({} rejected for too few inliers, {} for too small a share of inliers, {} for inliers on a line or in a cluster, {} for their height, {} as inconsistent with the inertial filter; {} frames without a fix updated the filter with their matches; {} frames updated it with the landmarks tracked from the image before), median {:.1} ms per frame; wrote {}, {} and {}",
         report.processed,
         report.frames,
         report.fixes,
@@ -728,6 +739,7 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
         report.rejected.height,
         report.rejected.inconsistent,
         report.prior_gated_updates,
+        report.track_updates,
         report.median_ms,
         a.out.display(),
         matches_path.display(),

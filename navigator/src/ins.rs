@@ -16,10 +16,11 @@
 //! **Error state** (the order of [`InsFilter::covariance`]), truth = estimate
 //! plus error: `[dtheta (rad, ECEF: q = exp(dtheta) q_est); dr (m); dv (m/s);
 //! dbg (rad/s, gyro bias, IMU frame); dba (m/s^2, accelerometer bias, IMU
-//! frame); dm (m, map offset)]`. Its dynamics (Groves eq. 14.48-14.50):
+//! frame); dm (m, map offset); dtau (s, time offset); dm_theta (rad, the
+//! map offset's attitude part)]`. Its dynamics (Groves eq. 14.48-14.50):
 //! `dtheta' = -[we]x dtheta - R dbg`, `dr' = dv`,
 //! `dv' = -[R f]x dtheta + Gamma dr - 2 [we]x dv - R dba`, the biases random
-//! walks, and the map offset a first-order Gauss-Markov process.
+//! walks, and the map offset (both parts) a first-order Gauss-Markov process.
 //!
 //! **Map offset.** The landmarks are not the world: a database whose heights
 //! or orthoimage are off by tens of metres shifts every fix from the same
@@ -27,7 +28,11 @@
 //! filter models that shift as a position offset `m` of what the images see
 //! (`apparent = r + m`), correlated over [`InsErrors::map_tau_s`], so a
 //! hundred fixes from the same landmarks do not count as a hundred
-//! independent ones (`map_sigma_m = 0`: not modelled).
+//! independent ones (`map_sigma_m = 0`: not modelled). Its attitude part
+//! turns the pose the images see (`q_apparent = exp(m_theta) q_true`,
+//! [`InsErrors::map_att_sigma_rad`]): a narrow view trades a tilt for a
+//! shift, and the map's errors move both, so the fixes' tilt wander is not
+//! taken for gyro drift.
 //!
 //! **Update** ([`InsFilter::condition_on_pose`]): the image measures the
 //! apparent camera pose `[dtheta; dr + dm]`. A refinement of the matches with
@@ -35,9 +40,11 @@
 //! is the iterated Kalman update of that block; the rest of the state follows
 //! by Gaussian conditioning, as in [`crate::attitude`]. [`InsFilter::innovation`]
 //! tests an image-only pose against the prediction (chi-square, 6 degrees of
-//! freedom) before the update.
+//! freedom) before the update. [`InsFilter::linear_update`] takes any
+//! whitened linear measurement (with a nuisance), as the landmark tracks
+//! between frames give ([`crate::track`]).
 
-use nalgebra::{Matrix3, Matrix6, SMatrix, UnitQuaternion, Vector3, Vector6};
+use nalgebra::{DMatrix, DVector, Matrix3, Matrix6, SMatrix, UnitQuaternion, Vector3, Vector6};
 use trn_camera::CameraPose;
 use trn_flight::ImuSample;
 use trn_geodesy::gravity::{gravitation_gradient, gravity_ecef};
@@ -47,7 +54,7 @@ use trn_vision::pnp::rotation_vector;
 use crate::propagate::{for_each_segment, strapdown_increment};
 
 /// Dimension of the error state.
-pub const N: usize = 19;
+pub const N: usize = 22;
 /// Offsets of the error state's blocks.
 pub const ATT: usize = 0;
 pub const POS: usize = 3;
@@ -56,6 +63,7 @@ pub const GYRO_BIAS: usize = 9;
 pub const ACCEL_BIAS: usize = 12;
 pub const MAP: usize = 15;
 pub const TIME: usize = 18;
+pub const MAP_ATT: usize = 19;
 
 pub type Covariance = SMatrix<f64, N, N>;
 
@@ -77,6 +85,11 @@ pub struct InsErrors {
     /// correlation time (s).
     pub map_sigma_m: f64,
     pub map_tau_s: f64,
+    /// The map offset's attitude part: the 1-sigma rotation (rad per axis;
+    /// 0: not modelled) of the pose the images see, with the same
+    /// correlation time. A narrow view trades a tilt for a shift; the
+    /// database's errors move both.
+    pub map_att_sigma_rad: f64,
 }
 
 /// Initial uncertainty (1 sigma per axis).
@@ -102,6 +115,9 @@ pub struct InsState {
     pub accel_bias_imu_m_s2: Vector3<f64>,
     /// Apparent minus true position of what the images see (m, ECEF).
     pub map_offset_ecef_m: Vector3<f64>,
+    /// Apparent attitude of what the images see relative to the true one
+    /// (rad, ECEF rotation vector: `q_apparent = exp(this) q_true`).
+    pub map_offset_att_rad: Vector3<f64>,
     /// An image stamped `t` (IMU clock) was exposed at `t + time_offset_s`.
     pub time_offset_s: f64,
     /// The body's rotation rate relative to ECEF (rad/s, ECEF) at `t`, from
@@ -162,6 +178,7 @@ impl InsFilter {
         block(&mut p, GYRO_BIAS, init.gyro_bias_rad_s);
         block(&mut p, ACCEL_BIAS, init.accel_bias_m_s2);
         block(&mut p, MAP, errors.map_sigma_m);
+        block(&mut p, MAP_ATT, errors.map_att_sigma_rad);
         p[(TIME, TIME)] = init.time_offset_s * init.time_offset_s;
         Self { state, covariance: p, errors }
     }
@@ -228,6 +245,7 @@ impl InsFilter {
         let earth = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), -EARTH_RATE_RAD_S * dt);
         s.q_ecef_imu = earth * s.q_ecef_imu * dq;
         s.map_offset_ecef_m *= decay;
+        s.map_offset_att_rad *= decay;
 
         // The error state's F dt (the constant blocks are added at the flush).
         if gyro.is_some() {
@@ -245,12 +263,14 @@ impl InsFilter {
         let e = &self.errors;
         let vel_noise = if measured.is_some() { e.accel_vrw_m_s_sqrt_s } else { e.free_accel_m_s2_sqrt_s };
         let map_var = e.map_sigma_m.powi(2) * (1.0 - decay * decay);
+        let map_att_var = e.map_att_sigma_rad.powi(2) * (1.0 - decay * decay);
         for i in 0..3 {
             acc.q[ATT + i] += e.gyro_arw_rad_sqrt_s.powi(2) * dt;
             acc.q[VEL + i] += vel_noise.powi(2) * dt;
             acc.q[GYRO_BIAS + i] += e.gyro_bias_walk_rad_s_sqrt_s.powi(2) * dt;
             acc.q[ACCEL_BIAS + i] += e.accel_bias_walk_m_s2_sqrt_s.powi(2) * dt;
             acc.q[MAP + i] += map_var;
+            acc.q[MAP_ATT + i] += map_att_var;
         }
         acc.dt += dt;
         acc.map_decay *= decay;
@@ -277,7 +297,7 @@ impl InsFilter {
             b -= wx * 2.0;
         }
         let mut phi = Covariance::identity() + a + a * a * 0.5;
-        for i in MAP..MAP + 3 {
+        for i in (MAP..MAP + 3).chain(MAP_ATT..MAP_ATT + 3) {
             for j in 0..N {
                 phi[(i, j)] = 0.0;
             }
@@ -299,12 +319,13 @@ impl InsFilter {
         }
     }
 
-    /// `H` of the apparent camera pose `[dtheta + w dtau; dr + dm + v dtau]`.
+    /// `H` of the apparent camera pose `[dtheta + dm_theta + w dtau; dr + dm + v dtau]`.
     fn pose_rows(&self) -> SMatrix<f64, 6, N> {
         let mut h = SMatrix::<f64, 6, N>::zeros();
         h.fixed_view_mut::<3, 3>(0, ATT).copy_from(&Matrix3::identity());
         h.fixed_view_mut::<3, 3>(3, POS).copy_from(&Matrix3::identity());
         h.fixed_view_mut::<3, 3>(3, MAP).copy_from(&Matrix3::identity());
+        h.fixed_view_mut::<3, 3>(0, MAP_ATT).copy_from(&Matrix3::identity());
         h.fixed_view_mut::<3, 1>(0, TIME).copy_from(&self.state.rate_ecef_rad_s);
         h.fixed_view_mut::<3, 1>(3, TIME).copy_from(&self.state.velocity_ecef_m_s);
         h
@@ -323,7 +344,10 @@ impl InsFilter {
     pub fn apparent_pose(&self, q_imu_cam: &UnitQuaternion<f64>) -> (CameraPose, Matrix6<f64>) {
         let h = self.pose_rows();
         let s = &self.state;
-        let pose = CameraPose::new(Ecef(s.position.0 + s.map_offset_ecef_m), s.q_ecef_imu * q_imu_cam);
+        let pose = CameraPose::new(
+            Ecef(s.position.0 + s.map_offset_ecef_m),
+            UnitQuaternion::from_scaled_axis(s.map_offset_att_rad) * s.q_ecef_imu * q_imu_cam,
+        );
         (perturb(&pose, &self.time_shift()), h * self.covariance * h.transpose())
     }
 
@@ -410,6 +434,79 @@ impl InsFilter {
         Some(y.dot(&(s_inv * y)))
     }
 
+    /// A Kalman update from `m` scalar measurements `y = H dx + G n + e`
+    /// with unit noise `e` (rows already whitened), `H` over the error state
+    /// (`m` x [`N`]) and, optionally, a nuisance `n` (`G`: `m` x `k`) of
+    /// zero mean and the given 1-sigma per component, independent of the state,
+    /// estimated with it and then dropped. Many rows are first compressed by
+    /// a QR factorization of `[H G]` (the same information in at most `N + k`
+    /// rows). Nothing is changed: [`Self::apply_update`] applies the result.
+    /// `None` when a matrix is singular.
+    pub fn linear_update(
+        &self,
+        h: &DMatrix<f64>,
+        nuisance: Option<(&DMatrix<f64>, &[f64])>,
+        y: &DVector<f64>,
+    ) -> Option<LinearUpdate> {
+        let m = h.nrows();
+        if h.ncols() != N
+            || y.len() != m
+            || nuisance.is_some_and(|(g, sd)| g.nrows() != m || g.ncols() != sd.len())
+        {
+            return None;
+        }
+        let k = nuisance.map_or(0, |(g, _)| g.ncols());
+        let na = N + k;
+        let mut a = DMatrix::<f64>::zeros(m, na);
+        a.columns_mut(0, N).copy_from(h);
+        let mut pa = DMatrix::<f64>::zeros(na, na);
+        pa.view_mut((0, 0), (N, N)).copy_from(&self.covariance);
+        if let Some((g, sigmas)) = nuisance {
+            a.columns_mut(N, k).copy_from(g);
+            for (i, s) in sigmas.iter().enumerate() {
+                pa[(N + i, N + i)] = s * s;
+            }
+        }
+        // The residual orthogonal to [H G]'s columns is information on
+        // nothing but the noise: it enters the chi-square only.
+        let (a, y, outside) = if m > na {
+            let qr = a.qr();
+            let yc = qr.q().transpose() * y;
+            let outside = (y.norm_squared() - yc.norm_squared()).max(0.0);
+            (qr.r(), yc, outside)
+        } else {
+            (a, y.clone(), 0.0)
+        };
+        let mr = a.nrows();
+        let pht = &pa * a.transpose();
+        let s = &a * &pht + DMatrix::<f64>::identity(mr, mr);
+        let chol = s.clone().cholesky()?;
+        let gain = chol.solve(&pht.transpose()).transpose();
+        let dxa = &gain * &y;
+        let chi2 = y.dot(&chol.solve(&y)) + outside;
+        let kx = gain.rows(0, N).into_owned();
+        let dp = &kx * &s * kx.transpose();
+        let mut covariance = self.covariance;
+        for i in 0..N {
+            for j in 0..N {
+                covariance[(i, j)] -= 0.5 * (dp[(i, j)] + dp[(j, i)]);
+            }
+        }
+        Some(LinearUpdate {
+            dx: SMatrix::<f64, N, 1>::from_iterator(dxa.rows(0, N).iter().copied()),
+            nuisance: dxa.rows(N, k).into_owned(),
+            covariance,
+            chi2,
+            dof: m,
+        })
+    }
+
+    /// Applies a [`Self::linear_update`] computed from this filter.
+    pub fn apply_update(&mut self, u: &LinearUpdate) {
+        self.covariance = u.covariance;
+        self.apply(&u.dx);
+    }
+
     /// Adds an error-state correction to the nominal state.
     fn apply(&mut self, dx: &SMatrix<f64, N, 1>) {
         let s = &mut self.state;
@@ -420,6 +517,7 @@ impl InsFilter {
         s.gyro_bias_imu_rad_s += v(GYRO_BIAS);
         s.accel_bias_imu_m_s2 += v(ACCEL_BIAS);
         s.map_offset_ecef_m += v(MAP);
+        s.map_offset_att_rad += v(MAP_ATT);
         s.time_offset_s += dx[TIME];
     }
 
@@ -447,7 +545,9 @@ impl InsFilter {
     ) {
         let at_stamp = perturb(fix, &-self.time_shift());
         let s = &mut self.state;
-        s.q_ecef_imu = at_stamp.q_ecef_cam * q_imu_cam.inverse();
+        s.q_ecef_imu = UnitQuaternion::from_scaled_axis(-s.map_offset_att_rad)
+            * at_stamp.q_ecef_cam
+            * q_imu_cam.inverse();
         s.position = Ecef(at_stamp.position.0 - s.map_offset_ecef_m);
         let p = &mut self.covariance;
         for i in 0..6 {
@@ -461,6 +561,21 @@ impl InsFilter {
             p[(i, i)] = p[(i, i)].max(velocity_sigma_m_s * velocity_sigma_m_s);
         }
     }
+}
+
+/// The result of [`InsFilter::linear_update`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct LinearUpdate {
+    /// The error-state correction.
+    pub dx: SMatrix<f64, N, 1>,
+    /// The nuisance's estimate (dropped by the filter).
+    pub nuisance: DVector<f64>,
+    /// The posterior covariance.
+    pub covariance: Covariance,
+    /// Normalized innovation squared of the measurements against the
+    /// prediction, with `dof` degrees of freedom (the rows).
+    pub chi2: f64,
+    pub dof: usize,
 }
 
 /// `[log(q_a q_b^-1); p_a - p_b]`: pose `a` as a perturbation of `b`.
@@ -603,6 +718,7 @@ mod tests {
                 gyro_bias_imu_rad_s: Vector3::zeros(),
                 accel_bias_imu_m_s2: Vector3::zeros(),
                 map_offset_ecef_m: Vector3::zeros(),
+                map_offset_att_rad: Vector3::zeros(),
                 time_offset_s: 0.0,
                 rate_ecef_rad_s: Vector3::zeros(),
             }
@@ -618,6 +734,7 @@ mod tests {
             free_accel_m_s2_sqrt_s: 3.0,
             map_sigma_m: 0.0,
             map_tau_s: 0.0,
+            map_att_sigma_rad: 0.0,
         }
     }
 
@@ -758,11 +875,14 @@ mod tests {
         let mut e = errors();
         e.map_sigma_m = 15.0;
         e.map_tau_s = 20.0;
+        e.map_att_sigma_rad = 1e-3;
         let mut f = InsFilter::new(turn.state(0.0), &init(), e);
         let mut rng = Rng::new(3);
         let a = Covariance::from_fn(|_, _| rng.normal());
-        let scale = Covariance::from_diagonal(&SMatrix::<f64, N, 1>::from_fn(|i, _| {
-            [1e-3, 10.0, 1.0, 1e-5, 0.01, 10.0, 0.01][i / 3]
+        let scale = Covariance::from_diagonal(&SMatrix::<f64, N, 1>::from_fn(|i, _| match i {
+            TIME => 0.01,
+            MAP_ATT.. => 1e-3,
+            _ => [1e-3, 10.0, 1.0, 1e-5, 0.01, 10.0][i / 3],
         }));
         f.covariance = scale * (a * a.transpose() / N as f64 + Covariance::identity()) * scale;
         f.state.rate_ecef_rad_s = Vector3::new(0.1, -0.05, 0.2);
@@ -786,6 +906,8 @@ mod tests {
         assert!((dv - want_dv).norm() < 1e-6 * want_dv.norm().max(1e-9), "{dv} {want_dv}");
         let dm = g.state.map_offset_ecef_m - before.map_offset_ecef_m;
         assert!((dm - want_dx.fixed_rows::<3>(MAP)).norm() < 1e-6 * dm.norm().max(1e-9));
+        let dma = g.state.map_offset_att_rad - before.map_offset_att_rad;
+        assert!((dma - want_dx.fixed_rows::<3>(MAP_ATT)).norm() < 1e-6 * dma.norm().max(1e-12));
         let dbg = g.state.gyro_bias_imu_rad_s - before.gyro_bias_imu_rad_s;
         assert!((dbg - want_dx.fixed_rows::<3>(GYRO_BIAS)).norm() < 1e-6 * dbg.norm().max(1e-12));
     }
@@ -814,5 +936,88 @@ mod tests {
         assert!(f.covariance[(VEL, VEL)] >= 2500.0);
         // (The map offset is off: its block is zero.)
         assert!(f.covariance.fixed_view::<15, 15>(0, 0).into_owned().cholesky().is_some());
+    }
+
+    #[test]
+    fn a_linear_update_is_the_dense_kalman_update_with_its_nuisance() {
+        // Random covariance, rows and nuisance; the compressed update (many
+        // rows) and the direct one (few rows) both match the Kalman update
+        // of the state augmented with the nuisance, written out densely.
+        let mut rng = Rng::new(7);
+        let mut f = InsFilter::new(Turn::new().state(0.0), &init(), errors());
+        let a = DMatrix::<f64>::from_fn(N, N, |_, _| rng.normal());
+        f.covariance = Covariance::from_iterator((&a * a.transpose() / N as f64).iter().copied())
+            + Covariance::identity() * 0.1;
+        for m in [40, 6] {
+            let h = DMatrix::<f64>::from_fn(m, N, |_, _| rng.normal());
+            let g = DMatrix::<f64>::from_fn(m, 3, |_, _| rng.normal());
+            let y = DVector::<f64>::from_fn(m, |_, _| 3.0 * rng.normal());
+            let sigmas = [0.5, 1.0, 2.0];
+            let u = f.linear_update(&h, Some((&g, &sigmas)), &y).expect("regular");
+            // Dense: x_a = [x; n], P_a = diag(P, sigmas^2), R = I.
+            let na = N + 3;
+            let mut ha = DMatrix::<f64>::zeros(m, na);
+            ha.columns_mut(0, N).copy_from(&h);
+            ha.columns_mut(N, 3).copy_from(&g);
+            let mut pa = DMatrix::<f64>::zeros(na, na);
+            pa.view_mut((0, 0), (N, N)).copy_from(&f.covariance);
+            for (i, s) in sigmas.iter().enumerate() {
+                pa[(N + i, N + i)] = s * s;
+            }
+            let s_mat = &ha * &pa * ha.transpose() + DMatrix::<f64>::identity(m, m);
+            let s_inv = s_mat.clone().try_inverse().unwrap();
+            let k = &pa * ha.transpose() * &s_inv;
+            let dx = &k * &y;
+            let post = &pa - &k * &s_mat * k.transpose();
+            let chi2 = y.dot(&(&s_inv * &y));
+            for i in 0..N {
+                assert!((u.dx[i] - dx[i]).abs() < 1e-9 * (1.0 + dx[i].abs()), "m {m} dx {i}");
+                for j in 0..N {
+                    assert!((u.covariance[(i, j)] - post[(i, j)]).abs() < 1e-9, "m {m} P {i} {j}");
+                }
+            }
+            for i in 0..3 {
+                assert!((u.nuisance[i] - dx[N + i]).abs() < 1e-9 * (1.0 + dx[N + i].abs()));
+            }
+            assert!((u.chi2 - chi2).abs() < 1e-8 * chi2, "m {m}: {} against {chi2}", u.chi2);
+            assert_eq!(u.dof, m);
+        }
+        // Rows that do not fit the state are refused.
+        let y = DVector::<f64>::zeros(4);
+        assert!(f.linear_update(&DMatrix::zeros(4, N - 1), None, &y).is_none());
+        assert!(f.linear_update(&DMatrix::zeros(4, N), Some((&DMatrix::zeros(4, 2), &[1.0])), &y).is_none());
+    }
+
+    #[test]
+    fn the_map_offset_turns_the_pose_the_images_see() {
+        // With an attitude map offset, the apparent pose is the true one
+        // turned by it, the innovation's rows see it, and a reset to a fix
+        // puts the apparent pose on the fix.
+        let turn = Turn::new();
+        let mut e = errors();
+        e.map_att_sigma_rad = 0.1f64.to_radians();
+        e.map_tau_s = 10.0;
+        let mut f = InsFilter::new(turn.state(0.0), &init(), e);
+        let m = Vector3::new(1e-3, -2e-3, 5e-4);
+        f.state.map_offset_att_rad = m;
+        let q = UnitQuaternion::identity();
+        let (apparent, cov) = f.apparent_pose(&q);
+        let (truth_pose, _) = f.pose(&q);
+        let d = pose_difference(&apparent, &truth_pose);
+        assert!((d.fixed_rows::<3>(0) - m).norm() < 1e-12, "{d}");
+        // Its variance is in the apparent attitude's.
+        let want = init().attitude_rad.powi(2) + e.map_att_sigma_rad.powi(2);
+        assert!((cov[(0, 0)] - want).abs() < 1e-12 * want);
+        // It decays over its correlation time, its variance stays.
+        let (imu, _, _) = turn.imu(100.0, 11.0, None);
+        f.propagate(10.0, &imu);
+        let decayed = f.state.map_offset_att_rad;
+        assert!((decayed - m * (-1.0f64).exp()).norm() < 1e-9, "{decayed} {}", m * (-1.0f64).exp());
+        let v = f.covariance[(MAP_ATT, MAP_ATT)];
+        assert!((v - e.map_att_sigma_rad.powi(2)).abs() < 0.01 * v, "{v}");
+        let fix = CameraPose::new(Ecef(turn.at(10.0).p + Vector3::new(30.0, 0.0, 0.0)), turn.at(10.0).q);
+        f.reset_pose(&q, &fix, &(Matrix6::identity() * 100.0), 10.0);
+        let (apparent, _) = f.apparent_pose(&q);
+        assert!(pose_difference(&apparent, &fix).norm() < 1e-9);
     }
 }

@@ -8,8 +8,10 @@
 //! them (NCC), and solves the pose with P3P RANSAC and PnP refinement
 //! (`trn-vision`), then accepts or rejects the fix. With the inertial filter
 //! ([`ins`]) an accepted frame updates it tightly, a frame refused as a fix
-//! can still update it with the matches that agree with its prediction, and
-//! the camera's focal length is estimated in flight ([`calibration`]).
+//! can still update it with the matches that agree with its prediction, the
+//! landmarks found in two consecutive images update its velocity, gyro bias
+//! and time offset through the motion in between ([`track`]), and the
+//! camera's focal length is estimated in flight ([`calibration`]).
 //! [`run_flight`] drives it over a flight folder and writes `poses.csv` and
 //! `matches.csv`.
 //!
@@ -35,6 +37,7 @@ pub mod nav;
 pub mod picture;
 pub mod predict;
 pub mod propagate;
+pub mod track;
 
 use std::path::{Path, PathBuf};
 
@@ -123,6 +126,9 @@ impl RunOptions {
         if !non_negative(p.map_sigma_m) {
             return bad("--map-sigma", "must be metres >= 0");
         }
+        if !(non_negative(p.map_att_sigma_deg) && p.map_att_sigma_deg <= 10.0) {
+            return bad("--map-att-sigma", "must be degrees within 0..10");
+        }
         if let Some(c) = &p.calibration {
             for (option, v) in [
                 ("--focal-sigma", c.focal_sigma_rel),
@@ -159,6 +165,9 @@ pub struct RunReport {
     /// Frames without a fix whose matches updated the tight filter through
     /// its prediction (`NavParams::prior_gated_update`).
     pub prior_gated_updates: usize,
+    /// Frames whose landmarks, found in the image before too, updated the
+    /// tight filter through the motion in between (`NavParams::track_update`).
+    pub track_updates: usize,
     /// The camera's self-calibration at the end (`None`: off).
     pub calibration: Option<CalibrationReport>,
     /// The camera-IMU time offset the inertial filter ends with (`None`:
@@ -301,6 +310,7 @@ pub fn run_flight(
     let mut covariances = Vec::new();
     let mut imu_rate = Vec::new();
     let mut gated = 0;
+    let mut tracked = 0;
     opts.check()?;
     let row = |p: FilterPose, status: FixStatus| {
         let position = p.pose.position.to_geodetic();
@@ -361,6 +371,7 @@ pub fn run_flight(
             None => {}
         }
         gated += usize::from(r.gated_matches > 0);
+        tracked += usize::from(r.tracked > 0);
         records.push(r.record);
         matches.extend(r.matches);
         covariances.extend(r.covariance);
@@ -374,6 +385,7 @@ pub fn run_flight(
         rejected,
         median_ms: ms.get(ms.len() / 2).copied().unwrap_or(0.0),
         prior_gated_updates: gated,
+        track_updates: tracked,
         calibration: nav.calibration().map(CalibrationReport::of),
         time_offset: nav.inertial().map(|f| {
             let (offset, sigma) = f.time_offset();

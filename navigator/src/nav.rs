@@ -23,6 +23,7 @@ use crate::image::{GreyImage, Pyramid, UndistortLut};
 use crate::ins::{InsErrors, InsFilter, InsInit, InsState};
 use crate::predict::{predict, Predicted};
 use crate::propagate::propagate_with_bias;
+use crate::track::{track_update, TrackAnchor, TrackParams, TrackPoint};
 use trn_view::footprint::{footprint, FootprintParams};
 use trn_view::DbLevel;
 use trn_view::LandmarkSource;
@@ -116,6 +117,10 @@ pub struct NavParams {
     /// landmarks in view, and its correlation time (s). 0: not modelled.
     pub map_sigma_m: f64,
     pub map_tau_s: f64,
+    /// The map offset's attitude part (deg, 1 sigma per axis; 0: not
+    /// modelled): the rotation the database's errors give the pose the
+    /// images see (a narrow view's tilt for its shift).
+    pub map_att_sigma_deg: f64,
     /// Prior 1-sigma of the camera-IMU time offset (s) the inertial filter
     /// estimates (an image stamped `t` exposed at `t + offset`); 0: none.
     pub time_offset_sigma_s: f64,
@@ -123,6 +128,11 @@ pub struct NavParams {
     /// too narrow a spread) still updates the filter with its matches that
     /// agree with the prediction (at least 3; see `Navigator::gated_update`).
     pub prior_gated_update: bool,
+    /// With the tight filter, the landmarks found in two consecutive
+    /// images update its velocity, gyro bias and time offset through the
+    /// motion in between ([`crate::track`]).
+    pub track_update: bool,
+    pub track: TrackParams,
     /// A frame whose image-only pose is farther than this from the inertial
     /// filter's prediction (chi-square, 6 degrees of freedom) is rejected as
     /// inconsistent, and the filter's pose and velocity uncertainty doubled.
@@ -172,12 +182,18 @@ impl Default for NavParams {
             accel_vrw_m_s_sqrt_s: 0.0015,
             accel_bias_walk_m_s2_sqrt_s: 1e-4,
             free_accel_m_s2_sqrt_s: 3.0,
-            // Measured on the realistic flights (README): 20 m over 10 s
-            // leaves no flight's NEES above its 95% band; 10 m leaves two.
-            map_sigma_m: 20.0,
+            // Measured on the realistic flights (README): 40 m and 0.1 deg
+            // over 10 s, with the landmark tracks, bridge the 30 km nadir
+            // balloon's 30 s outage (167 -> 69 m of drift after 15 s of
+            // fixes) and leave no flight's NEES above its 95% band; the 30
+            // km nadir fixes wander by +-50 m (their tilt by 0.03-0.1 deg).
+            map_sigma_m: 40.0,
             map_tau_s: 10.0,
+            map_att_sigma_deg: 0.1,
             time_offset_sigma_s: 0.01,
             prior_gated_update: true,
+            track_update: true,
+            track: TrackParams::default(),
             // 99.9% of chi-square with 6 degrees of freedom.
             innovation_gate_chi2: 22.46,
             sun: None,
@@ -200,6 +216,10 @@ pub struct FrameResult {
     /// Matches of a frame without a fix that updated the inertial filter
     /// through its prediction ([`NavParams::prior_gated_update`]; 0: none).
     pub gated_matches: usize,
+    /// Landmarks found in this image and the one before that updated the
+    /// inertial filter through the motion in between
+    /// ([`NavParams::track_update`]; 0: none).
+    pub tracked: usize,
 }
 
 /// Why a frame's pose solution was rejected.
@@ -315,6 +335,9 @@ pub struct Navigator<'a> {
     terrain_h_m: f64,
     /// The inertial filter at `t` (`None`: [`FilterMode::Fixes`]).
     ins: Option<InsFilter>,
+    /// The last frame's matches and the filter's pose then: the next
+    /// frame's track update ([`crate::track`]).
+    track: Option<TrackAnchor>,
 }
 
 /// A frame's prediction: the pose guess and how far it may be off.
@@ -415,6 +438,7 @@ impl<'a> Navigator<'a> {
                 gyro_bias_imu_rad_s: Vector3::zeros(),
                 accel_bias_imu_m_s2: Vector3::zeros(),
                 map_offset_ecef_m: Vector3::zeros(),
+                map_offset_att_rad: Vector3::zeros(),
                 time_offset_s: 0.0,
                 rate_ecef_rad_s: Vector3::zeros(),
             };
@@ -438,6 +462,7 @@ impl<'a> Navigator<'a> {
                     free_accel_m_s2_sqrt_s: params.free_accel_m_s2_sqrt_s,
                     map_sigma_m: params.map_sigma_m,
                     map_tau_s: params.map_tau_s,
+                    map_att_sigma_rad: params.map_att_sigma_deg.to_radians(),
                 },
             )
         });
@@ -477,6 +502,7 @@ impl<'a> Navigator<'a> {
             velocity: Vector3::zeros(),
             terrain_h_m,
             ins,
+            track: None,
         })
     }
 
@@ -583,6 +609,25 @@ impl<'a> Navigator<'a> {
             debug!("t {t:.3}: prior-gated update with {n} matches");
         }
         n
+    }
+
+    /// [`track_update`] with the last frame's matches, with the tight
+    /// filter ([`NavParams::track_update`]), after the first fix; returns
+    /// the tracks used (0: no update).
+    fn track_update(&self, t: f64, filter: &mut Carried, current: &[TrackPoint]) -> usize {
+        let (Carried::Ins(f), Some(anchor)) = (filter, &self.track) else { return 0 };
+        if self.params.filter != FilterMode::Tight || !self.params.track_update || self.last_fix.is_none() {
+            return 0;
+        }
+        let Some(o) = track_update(&self.camera, &self.q_imu_cam, f, anchor, current, &self.params.track)
+        else {
+            return 0;
+        };
+        debug!(
+            "t {t:.3}: tracks: {} pairs, {} used, chi2 {:.1} (limit {:.1}), rms {:.3} px",
+            o.pairs, o.used, o.chi2, o.limit, o.rms_px
+        );
+        o.used
     }
 
     fn calibrate(&mut self, t: f64, sol: &mut Solution, frame: Option<FrameCalibration>) -> Matrix6<f64> {
@@ -754,6 +799,22 @@ impl<'a> Navigator<'a> {
         self.update_camera(t);
         let pred = self.predict(t);
         let outcome = self.solve(t, &pred.guess, &pred.att_cov, pred.sigma_m, image);
+        let found = match &outcome {
+            Ok(sol) => matches_of(sol),
+            Err(e) => e.found.clone(),
+        };
+        let current: Vec<TrackPoint> = found
+            .iter()
+            .map(|m| TrackPoint {
+                landmark: m.landmark,
+                pixel: m.pixel,
+                sigma_px: m.sigma_px,
+                point_ecef: m.point_ecef,
+            })
+            .collect();
+        let mut pred = pred;
+        let acquisition = matches!(&outcome, Ok(sol) if sol.acquisition);
+        let tracked = if acquisition { 0 } else { self.track_update(t, &mut pred.filter, &current) };
         let mut covariance = None;
         let mut rejected = None;
         let mut gated_matches = 0;
@@ -795,7 +856,6 @@ impl<'a> Navigator<'a> {
                     covariance = Some(PoseCovariance { t, position: self.pose.position.to_geodetic(), ecef });
                 } else {
                     debug!("t {t:.3}: fix rejected ({} inliers): {rejection:?}", sol.inliers);
-                    let mut pred = pred;
                     if let (Some(Rejection::Inconsistent { .. }), Carried::Ins(f)) =
                         (rejection, &mut pred.filter)
                     {
@@ -813,12 +873,14 @@ impl<'a> Navigator<'a> {
                 (status, sol.inliers, sol.n_matches, sol.records, sol.guess_px)
             }
             Err(NoSolution { matches, found }) => {
-                let mut pred = pred;
                 gated_matches = self.gated_update(t, &mut pred.filter, &found);
                 self.carry(t, pred);
                 (FixStatus::Propagated, 0, matches, Vec::new(), Vec::new())
             }
         };
+        if let Some(f) = &self.ins {
+            self.track = Some(TrackAnchor::of(f, &self.q_imu_cam, current));
+        }
         let ms = start.elapsed().as_secs_f64() * 1e3;
         let g = self.pose.position.to_geodetic();
         FrameResult {
@@ -840,6 +902,7 @@ impl<'a> Navigator<'a> {
             covariance,
             rejection: rejected,
             gated_matches,
+            tracked,
         }
     }
 
@@ -1583,7 +1646,7 @@ const JOINT_GATE_P_Z: f64 = 3.09;
 
 /// Chi-square quantile with `k` degrees of freedom at the normal quantile
 /// `z` (Wilson-Hilferty: within 1% for k >= 3 at 99.9%).
-fn chi2_quantile(k: usize, z: f64) -> f64 {
+pub(crate) fn chi2_quantile(k: usize, z: f64) -> f64 {
     let k = k as f64;
     let a = 2.0 / (9.0 * k);
     k * (1.0 - a + z * a.sqrt()).powi(3)
@@ -1698,6 +1761,7 @@ mod tests {
             gyro_bias_imu_rad_s: Vector3::zeros(),
             accel_bias_imu_m_s2: Vector3::zeros(),
             map_offset_ecef_m: Vector3::zeros(),
+            map_offset_att_rad: Vector3::zeros(),
             time_offset_s: 0.0,
             rate_ecef_rad_s: Vector3::zeros(),
         };
@@ -1718,6 +1782,7 @@ mod tests {
             free_accel_m_s2_sqrt_s: 1.0,
             map_sigma_m: 0.0,
             map_tau_s: 10.0,
+            map_att_sigma_rad: 0.0,
         };
         // Within +-300 m of the nadir point: +-38 px of a 640 x 480 image.
         let points = [(-250.0, -200.0), (240.0, -180.0), (0.0, 260.0), (-120.0, 90.0), (200.0, 150.0)]

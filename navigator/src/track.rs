@@ -1,0 +1,441 @@
+//! Landmark tracks between consecutive frames: the tight filter's relative
+//! update. Pure math, no I/O.
+//!
+//! A landmark matched in two consecutive images was seen twice at the same
+//! place in the world, whatever the database says that place is. Its pixel
+//! in the earlier image, cast along that image's ray to the landmark's
+//! depth, gives a point that the later image must see where the motion in
+//! between puts it. That motion is the inertial filter's own: the gyro's
+//! rotation (less its bias), the velocity over the interval, and the time
+//! offset carried by the change of rate and velocity. The residuals
+//! therefore measure the velocity and the gyro bias, not the absolute pose:
+//! the database's errors (its ortho, its heights), which move a fix by tens
+//! of metres as the landmarks in view change (a narrow nadir view's
+//! tilt/shift trade), cancel, since both images see the same errors.
+//!
+//! **Model** (error state of [`crate::ins`], truth = estimate + error):
+//! the pose error grows over the interval `dt` by `dp = dv dt` and
+//! `dtheta = -R dbg dt + n`, with `n` the gyro's angle random walk over
+//! the interval (a nuisance shared by every track of the frame, of sigma
+//! `arw sqrt(dt)` per axis), and the time offset moves the two poses the
+//! images saw by `[w tau; v tau]` at each end. With `J = [J_theta J_p]`
+//! the pixel's Jacobian in the later pose ([`trn_vision::pnp::project_with_jacobian`]),
+//! a track's residual (found minus predicted pixel) is
+//! `J_p dt dv - J_theta R dt dbg + (J_theta dw + J_p dv_) dtau + J_theta n + e`
+//! (`dw`, `dv_`: the change of rate and velocity over the interval),
+//! `e` the two peaks' sigmas and a floor. The absolute pose error at the
+//! earlier frame moves the cast point and the later pose alike and cancels
+//! to first order (up to its rotation of the baseline).
+//!
+//! **Robustness**: each track is gated against the prediction (chi-square,
+//! 2 degrees of freedom, 99.9%), the worst is dropped while one lies beyond
+//! the gate from the fit, and the whole set must pass the joint innovation
+//! test (99.9%) before the filter takes it. A landmark matched to the
+//! same wrong place in both images is still a good track.
+
+use std::collections::HashMap;
+
+use nalgebra::{DMatrix, DVector, Matrix2, SMatrix, UnitQuaternion, Vector2, Vector3};
+use trn_camera::{CameraModel, CameraPose, Pixel};
+use trn_geodesy::Ecef;
+use trn_vision::pnp::project_with_jacobian;
+
+use crate::ins::{perturb, InsFilter, GYRO_BIAS, N, TIME, VEL};
+
+/// A landmark found in an image (full-resolution pixels).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TrackPoint {
+    pub landmark: i64,
+    pub pixel: Pixel,
+    /// The correlation peak's sigma (px, per coordinate).
+    pub sigma_px: f64,
+    /// The landmark's database position (ECEF): only its depth is used.
+    pub point_ecef: Vector3<f64>,
+}
+
+/// The earlier frame of a track update: when, the filter's camera pose then
+/// (without the map offset and the time offset's shift), the body rate and
+/// velocity that shift it, and what it found.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TrackAnchor {
+    pub t: f64,
+    pub pose: CameraPose,
+    pub rate_ecef_rad_s: Vector3<f64>,
+    pub velocity_ecef_m_s: Vector3<f64>,
+    pub points: Vec<TrackPoint>,
+}
+
+impl TrackAnchor {
+    /// The filter's state now, and the points an image at its time found.
+    pub fn of(f: &InsFilter, q_imu_cam: &UnitQuaternion<f64>, points: Vec<TrackPoint>) -> Self {
+        let s = &f.state;
+        Self {
+            t: s.t,
+            pose: CameraPose::new(s.position, s.q_ecef_imu * q_imu_cam),
+            rate_ecef_rad_s: s.rate_ecef_rad_s,
+            velocity_ecef_m_s: s.velocity_ecef_m_s,
+            points,
+        }
+    }
+}
+
+/// Tuning of [`track_update`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TrackParams {
+    /// The sigma (px, per coordinate) each track is weighed with, on top
+    /// of its two peaks' own. The tracks scatter by 0.1-0.2 px RMS on the
+    /// realistic flights, but a filter that trusts the motion that
+    /// precisely holds on to the error its first fixes had: the fixes'
+    /// errors drift slowly (the self-calibration converging, the
+    /// landmarks in view changing), and their model (the map offset) does
+    /// not say how. 3 px keeps the motion's information on the velocity
+    /// and the gyro bias over seconds (the outage: README) and lets the
+    /// position follow the fixes.
+    pub sigma_px: f64,
+    /// Fewest tracks an update needs.
+    pub min_tracks: usize,
+    /// Longest interval between the two images (s).
+    pub max_interval_s: f64,
+}
+
+impl Default for TrackParams {
+    fn default() -> Self {
+        Self { sigma_px: 3.0, min_tracks: 5, max_interval_s: 2.0 }
+    }
+}
+
+/// What a track update did.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TrackOutcome {
+    /// Landmarks found in both images.
+    pub pairs: usize,
+    /// Tracks the update used (0: the filter was not changed).
+    pub used: usize,
+    /// Joint normalized innovation squared of the used tracks, and its limit.
+    pub chi2: f64,
+    pub limit: f64,
+    /// RMS of the used tracks' residuals after the update (px, per coordinate).
+    pub rms_px: f64,
+}
+
+/// One track's linearization.
+struct Track {
+    /// Found minus predicted pixel (u, v), over its sigma.
+    y: Vector2<f64>,
+    /// Rows in the error state, over its sigma.
+    h: SMatrix<f64, 2, N>,
+    /// Rows in the angle random walk nuisance, over its sigma.
+    g: SMatrix<f64, 2, 3>,
+    sigma_px: f64,
+}
+
+/// 99.9% of chi-square with 2 degrees of freedom.
+const TRACK_GATE_CHI2: f64 = 13.82;
+/// The joint test's normal quantile (99.9%).
+const JOINT_Z: f64 = 3.09;
+
+/// Updates `f` (carried to the later image's time) with the landmarks
+/// found both in `anchor`'s image and in `current` (the later image's),
+/// through `camera`; `None` when the interval or the tracks do not allow
+/// an update (see the module's documentation).
+pub fn track_update(
+    camera: &CameraModel,
+    q_imu_cam: &UnitQuaternion<f64>,
+    f: &mut InsFilter,
+    anchor: &TrackAnchor,
+    current: &[TrackPoint],
+    params: &TrackParams,
+) -> Option<TrackOutcome> {
+    let dt = f.state.t - anchor.t;
+    if !(dt > 0.0 && dt <= params.max_interval_s) {
+        return None;
+    }
+    let earlier: HashMap<i64, &TrackPoint> = anchor.points.iter().map(|p| (p.landmark, p)).collect();
+    let pairs: Vec<(&TrackPoint, &TrackPoint)> =
+        current.iter().filter_map(|c| Some((*earlier.get(&c.landmark)?, c))).collect();
+    let mut outcome = TrackOutcome { pairs: pairs.len(), used: 0, chi2: 0.0, limit: 0.0, rms_px: 0.0 };
+    if pairs.len() < params.min_tracks {
+        return Some(outcome);
+    }
+    let s = &f.state;
+    let tau = s.time_offset_s;
+    let shift = |w: &Vector3<f64>, v: &Vector3<f64>| {
+        nalgebra::Vector6::new(w.x * tau, w.y * tau, w.z * tau, v.x * tau, v.y * tau, v.z * tau)
+    };
+    // The poses the two images saw (the time offset's shift at each end).
+    let seen0 = perturb(&anchor.pose, &shift(&anchor.rate_ecef_rad_s, &anchor.velocity_ecef_m_s));
+    let pose1 = CameraPose::new(s.position, s.q_ecef_imu * q_imu_cam);
+    let seen1 = perturb(&pose1, &shift(&s.rate_ecef_rad_s, &s.velocity_ecef_m_s));
+    let r_mid = {
+        let q0 = anchor.pose.q_ecef_cam * q_imu_cam.inverse();
+        q0.slerp(&s.q_ecef_imu, 0.5).to_rotation_matrix().into_inner()
+    };
+    let dw = s.rate_ecef_rad_s - anchor.rate_ecef_rad_s;
+    let dv = s.velocity_ecef_m_s - anchor.velocity_ecef_m_s;
+    let arw_sigma = f.errors.gyro_arw_rad_sqrt_s * dt.sqrt();
+    let p = &f.covariance;
+
+    let mut tracks: Vec<Track> = pairs
+        .iter()
+        .filter_map(|(a, b)| {
+            // The earlier pixel cast along its ray to the landmark's depth.
+            let depth = seen0.to_camera(&Ecef(a.point_ecef)).z;
+            if !(depth > 0.0) {
+                return None;
+            }
+            let ray_cam = camera.ray(a.pixel);
+            let cast = seen0.to_ecef(&(ray_cam * (depth / ray_cam.z)));
+            let (pred, j) = project_with_jacobian(camera, &seen1, &cast.0)?;
+            let (jt, jp) = (j.fixed_columns::<3>(0).into_owned(), j.fixed_columns::<3>(3).into_owned());
+            let sigma = (a.sigma_px.powi(2) + b.sigma_px.powi(2) + params.sigma_px.powi(2)).sqrt();
+            let mut h = SMatrix::<f64, 2, N>::zeros();
+            h.fixed_view_mut::<2, 3>(0, VEL).copy_from(&(jp * dt));
+            h.fixed_view_mut::<2, 3>(0, GYRO_BIAS).copy_from(&(-jt * r_mid * dt));
+            h.fixed_view_mut::<2, 1>(0, TIME).copy_from(&(jt * dw + jp * dv));
+            let y = Vector2::new(b.pixel.u - pred.u, b.pixel.v - pred.v);
+            // The gate against the prediction.
+            let sp = h * p * h.transpose()
+                + jt * jt.transpose() * arw_sigma.powi(2)
+                + Matrix2::identity() * sigma.powi(2);
+            let d2 = y.dot(&(sp.try_inverse()? * y));
+            (d2 <= TRACK_GATE_CHI2).then(|| Track {
+                y: y / sigma,
+                h: h / sigma,
+                g: jt / sigma,
+                sigma_px: sigma,
+            })
+        })
+        .collect();
+    loop {
+        let n = tracks.len();
+        if n < params.min_tracks {
+            return Some(outcome);
+        }
+        let mut h = DMatrix::<f64>::zeros(2 * n, N);
+        let mut g = DMatrix::<f64>::zeros(2 * n, 3);
+        let mut y = DVector::<f64>::zeros(2 * n);
+        for (i, t) in tracks.iter().enumerate() {
+            h.view_mut((2 * i, 0), (2, N)).copy_from(&t.h);
+            g.view_mut((2 * i, 0), (2, 3)).copy_from(&t.g);
+            y.rows_mut(2 * i, 2).copy_from(&t.y);
+        }
+        let sigmas = [arw_sigma; 3];
+        let u = f.linear_update(&h, Some((&g, &sigmas)), &y)?;
+        // Each track's residual after the update (whitened).
+        let e = &y - &h * u.dx - &g * &u.nuisance;
+        let (worst, worst_d2) = (0..n)
+            .map(|i| (i, e[2 * i].powi(2) + e[2 * i + 1].powi(2)))
+            .max_by(|a, b| a.1.total_cmp(&b.1))
+            .expect("tracks");
+        if worst_d2 > TRACK_GATE_CHI2 {
+            tracks.swap_remove(worst);
+            continue;
+        }
+        let limit = crate::nav::chi2_quantile(2 * n, JOINT_Z);
+        let sum2: f64 = (0..n)
+            .map(|i| (e[2 * i] * tracks[i].sigma_px).powi(2) + (e[2 * i + 1] * tracks[i].sigma_px).powi(2))
+            .sum();
+        outcome.chi2 = u.chi2;
+        outcome.limit = limit;
+        outcome.rms_px = (sum2 / (2 * n) as f64).sqrt();
+        if u.chi2 <= limit {
+            f.apply_update(&u);
+            outcome.used = n;
+        }
+        return Some(outcome);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ins::{InsErrors, InsInit, InsState, POS};
+    use trn_geodesy::{Enu, Geodetic, LocalFrame};
+
+    /// A nadir camera at 5 km flying east at 200 m/s over flat ground,
+    /// images 0.5 s apart; the filter starts on the true pose with a
+    /// velocity 6 m/s off (north) and no IMU samples (attitude fixed in
+    /// inertial space, velocity held, as the truth here). The database's
+    /// landmarks are up to 60 m off their true places.
+    struct Scene {
+        camera: CameraModel,
+        filter: InsFilter,
+        anchor: TrackAnchor,
+        later: Vec<TrackPoint>,
+        true_velocity: Vector3<f64>,
+    }
+
+    fn scene(n_points: usize) -> Scene {
+        let camera = CameraModel::from_fov(640, 480, 40.0);
+        let frame = LocalFrame::at(Geodetic::new(37.0, -118.0, 0.0));
+        let east = frame.r_ecef_enu().column(0).into_owned();
+        let north = frame.r_ecef_enu().column(1).into_owned();
+        let pose0 = CameraPose::look_at(
+            frame.to_ecef(Enu::new(0.0, 0.0, 5000.0)),
+            frame.to_ecef(Enu::new(0.0, 0.0, 0.0)),
+            north,
+        );
+        let true_velocity = east * 200.0;
+        let state = |v: Vector3<f64>| InsState {
+            t: 0.0,
+            position: pose0.position,
+            velocity_ecef_m_s: v,
+            q_ecef_imu: pose0.q_ecef_cam,
+            gyro_bias_imu_rad_s: Vector3::zeros(),
+            accel_bias_imu_m_s2: Vector3::zeros(),
+            map_offset_ecef_m: Vector3::zeros(),
+            map_offset_att_rad: Vector3::zeros(),
+            time_offset_s: 0.0,
+            rate_ecef_rad_s: Vector3::zeros(),
+        };
+        let init = InsInit {
+            attitude_rad: 0.05f64.to_radians(),
+            position_m: 30.0,
+            velocity_m_s: 10.0,
+            gyro_bias_rad_s: 10f64.to_radians() / 3600.0,
+            accel_bias_m_s2: 0.02,
+            time_offset_s: 0.0,
+        };
+        let errors = InsErrors {
+            gyro_arw_rad_sqrt_s: 0.15f64.to_radians() / 60.0,
+            gyro_bias_walk_rad_s_sqrt_s: 0.0,
+            accel_vrw_m_s_sqrt_s: 1e-3,
+            accel_bias_walk_m_s2_sqrt_s: 0.0,
+            free_accel_m_s2_sqrt_s: 1e-3,
+            map_sigma_m: 20.0,
+            map_tau_s: 10.0,
+            map_att_sigma_rad: 0.0,
+        };
+        let mut truth = InsFilter::new(state(true_velocity), &init, errors);
+        let mut filter = InsFilter::new(state(true_velocity + north * 6.0), &init, errors);
+        let anchor_of =
+            |f: &InsFilter, pts: Vec<TrackPoint>| TrackAnchor::of(f, &UnitQuaternion::identity(), pts);
+        // Ground points around the two views, their database places off by
+        // a pseudo-random 60 m at most.
+        let side = (n_points as f64).sqrt().ceil() as usize;
+        let ground: Vec<(Vector3<f64>, Vector3<f64>)> = (0..n_points)
+            .map(|i| {
+                let (a, b) = ((i % side) as f64, (i / side) as f64);
+                let e = -1200.0 + 2600.0 * a / side as f64;
+                let n = -900.0 + 1800.0 * b / side as f64;
+                let p = frame.to_ecef(Enu::new(e, n, 0.0)).0;
+                let k = i as f64;
+                let off =
+                    Vector3::new((k * 1.7).sin(), (k * 2.3).cos(), (k * 0.9).sin()) * 60.0 / 3f64.sqrt();
+                (p, p + off)
+            })
+            .collect();
+        let seen = |f: &InsFilter| -> Vec<TrackPoint> {
+            let pose = CameraPose::new(f.state.position, f.state.q_ecef_imu);
+            ground
+                .iter()
+                .enumerate()
+                .filter_map(|(i, (p, db))| {
+                    let px = pose.project(&camera, &Ecef(*p))?;
+                    Some(TrackPoint { landmark: i as i64, pixel: px, sigma_px: 0.05, point_ecef: *db })
+                })
+                .collect()
+        };
+        let anchor = anchor_of(&filter, seen(&truth));
+        truth.propagate(0.5, &[]);
+        filter.propagate(0.5, &[]);
+        let later = seen(&truth);
+        // The truth's pose error is only the filter's velocity error.
+        assert!((filter.state.position.0 - truth.state.position.0 - north * 3.0).norm() < 1e-6);
+        Scene { camera, filter, anchor, later, true_velocity }
+    }
+
+    fn sharp() -> TrackParams {
+        TrackParams { sigma_px: 0.05, ..TrackParams::default() }
+    }
+
+    #[test]
+    fn tracks_measure_the_velocity_whatever_the_map_says() {
+        let mut s = scene(40);
+        let before = s.filter.covariance;
+        let o = track_update(
+            &s.camera,
+            &UnitQuaternion::identity(),
+            &mut s.filter,
+            &s.anchor,
+            &s.later,
+            &sharp(),
+        )
+        .expect("an update");
+        assert_eq!(o.used, o.pairs);
+        assert!(o.pairs >= 30, "{o:?}");
+        assert!(o.chi2 <= o.limit, "{o:?}");
+        // 6 m/s off before; the landmarks' 60 m errors cancel. Across the
+        // line of sight the motion tells the velocity well; along it only
+        // by the image's scale change, within its sigma.
+        let dv = s.filter.state.velocity_ecef_m_s - s.true_velocity;
+        let up = s.filter.state.position.to_geodetic().up_ecef();
+        let across = (dv - up * up.dot(&dv)).norm();
+        assert!(across < 0.5, "velocity error across {across} m/s: {dv} {o:?}");
+        let p = s.filter.covariance.fixed_view::<3, 3>(VEL, VEL).into_owned();
+        let nees = dv.dot(&(p.try_inverse().unwrap() * dv));
+        assert!(nees < 16.27, "velocity NEES {nees}");
+        assert!(s.filter.covariance[(VEL, VEL)] < before[(VEL, VEL)]);
+        // The position's own uncertainty is not what tracks measure.
+        assert!(s.filter.covariance[(POS, POS)] > 0.5 * before[(POS, POS)]);
+    }
+
+    #[test]
+    fn a_wrong_track_is_dropped_and_too_few_change_nothing() {
+        let mut s = scene(40);
+        s.later[3].pixel.u += 4.0;
+        s.later[7].pixel.v -= 1.5;
+        let o = track_update(
+            &s.camera,
+            &UnitQuaternion::identity(),
+            &mut s.filter,
+            &s.anchor,
+            &s.later,
+            &sharp(),
+        )
+        .expect("an update");
+        assert_eq!(o.used, o.pairs - 2, "{o:?}");
+        let dv = s.filter.state.velocity_ecef_m_s - s.true_velocity;
+        let up = s.filter.state.position.to_geodetic().up_ecef();
+        assert!((dv - up * up.dot(&dv)).norm() < 0.5, "{dv}");
+
+        // Four tracks: fewer than the five an update needs.
+        let mut s = scene(40);
+        let before = s.filter.clone();
+        let few: Vec<TrackPoint> = s.later[..4].to_vec();
+        let o =
+            track_update(&s.camera, &UnitQuaternion::identity(), &mut s.filter, &s.anchor, &few, &sharp())
+                .expect("an outcome");
+        assert_eq!((o.pairs, o.used), (4, 0));
+        assert_eq!(s.filter, before);
+
+        // Tracks that all disagree with the motion (the later image's
+        // matches shifted 30 px: another place) fail the joint test or the
+        // gates.
+        let mut s = scene(40);
+        let before = s.filter.clone();
+        let moved: Vec<TrackPoint> = s
+            .later
+            .iter()
+            .map(|p| TrackPoint { pixel: Pixel::new(p.pixel.u + 30.0, p.pixel.v), ..*p })
+            .collect();
+        let o =
+            track_update(&s.camera, &UnitQuaternion::identity(), &mut s.filter, &s.anchor, &moved, &sharp())
+                .expect("an outcome");
+        assert_eq!(o.used, 0, "{o:?}");
+        assert_eq!(s.filter, before);
+
+        // Images too far apart: no update.
+        let mut s = scene(40);
+        s.anchor.t = -5.0;
+        assert!(track_update(
+            &s.camera,
+            &UnitQuaternion::identity(),
+            &mut s.filter,
+            &s.anchor,
+            &s.later,
+            &sharp()
+        )
+        .is_none());
+    }
+}

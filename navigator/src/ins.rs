@@ -334,8 +334,7 @@ impl InsFilter {
     /// How the time offset moves the pose an image sees: `[w tau; v tau]`.
     fn time_shift(&self) -> Vector6<f64> {
         let s = &self.state;
-        let (w, v) = (s.rate_ecef_rad_s * s.time_offset_s, s.velocity_ecef_m_s * s.time_offset_s);
-        Vector6::new(w.x, w.y, w.z, v.x, v.y, v.z)
+        time_shift(&s.rate_ecef_rad_s, &s.velocity_ecef_m_s, s.time_offset_s)
     }
 
     /// The camera pose the images should see (the map offset added, carried
@@ -576,6 +575,17 @@ pub struct LinearUpdate {
     /// prediction, with `dof` degrees of freedom (the rows).
     pub chi2: f64,
     pub dof: usize,
+}
+
+/// How a time offset `tau` (s) moves the pose an image sees, with the body's
+/// rotation rate (rad/s) and velocity (m/s), both ECEF: `[w tau; v tau]`.
+pub fn time_shift(
+    rate_ecef_rad_s: &Vector3<f64>,
+    velocity_ecef_m_s: &Vector3<f64>,
+    tau: f64,
+) -> Vector6<f64> {
+    let (w, v) = (rate_ecef_rad_s * tau, velocity_ecef_m_s * tau);
+    Vector6::new(w.x, w.y, w.z, v.x, v.y, v.z)
 }
 
 /// `[log(q_a q_b^-1); p_a - p_b]`: pose `a` as a perturbation of `b`.

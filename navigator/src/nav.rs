@@ -864,7 +864,6 @@ impl<'a> Navigator<'a> {
                         // frames gets through the gate.
                         f.inflate(2.0);
                     } else if !sol.acquisition && !matches!(rejection, Some(Rejection::Height { .. })) {
-                        let found = matches_of(&sol);
                         gated_matches = self.gated_update(t, &mut pred.filter, &found);
                     }
                     self.carry(t, pred);

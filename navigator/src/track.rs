@@ -40,7 +40,7 @@ use trn_camera::{CameraModel, CameraPose, Pixel};
 use trn_geodesy::Ecef;
 use trn_vision::pnp::project_with_jacobian;
 
-use crate::ins::{perturb, InsFilter, GYRO_BIAS, N, TIME, VEL};
+use crate::ins::{perturb, time_shift, InsFilter, GYRO_BIAS, N, TIME, VEL};
 
 /// A landmark found in an image (full-resolution pixels).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -71,7 +71,7 @@ impl TrackAnchor {
         let s = &f.state;
         Self {
             t: s.t,
-            pose: CameraPose::new(s.position, s.q_ecef_imu * q_imu_cam),
+            pose: f.pose(q_imu_cam).0,
             rate_ecef_rad_s: s.rate_ecef_rad_s,
             velocity_ecef_m_s: s.velocity_ecef_m_s,
             points,
@@ -159,13 +159,9 @@ pub fn track_update(
     }
     let s = &f.state;
     let tau = s.time_offset_s;
-    let shift = |w: &Vector3<f64>, v: &Vector3<f64>| {
-        nalgebra::Vector6::new(w.x * tau, w.y * tau, w.z * tau, v.x * tau, v.y * tau, v.z * tau)
-    };
     // The poses the two images saw (the time offset's shift at each end).
-    let seen0 = perturb(&anchor.pose, &shift(&anchor.rate_ecef_rad_s, &anchor.velocity_ecef_m_s));
-    let pose1 = CameraPose::new(s.position, s.q_ecef_imu * q_imu_cam);
-    let seen1 = perturb(&pose1, &shift(&s.rate_ecef_rad_s, &s.velocity_ecef_m_s));
+    let seen0 = perturb(&anchor.pose, &time_shift(&anchor.rate_ecef_rad_s, &anchor.velocity_ecef_m_s, tau));
+    let seen1 = perturb(&f.pose(q_imu_cam).0, &time_shift(&s.rate_ecef_rad_s, &s.velocity_ecef_m_s, tau));
     let r_mid = {
         let q0 = anchor.pose.q_ecef_cam * q_imu_cam.inverse();
         q0.slerp(&s.q_ecef_imu, 0.5).to_rotation_matrix().into_inner()
@@ -345,23 +341,18 @@ mod tests {
         Scene { camera, filter, anchor, later, true_velocity }
     }
 
-    fn sharp() -> TrackParams {
-        TrackParams { sigma_px: 0.05, ..TrackParams::default() }
+    /// The update of `s`'s filter with its later image's points, tracks
+    /// weighed at 0.05 px.
+    fn update(s: &mut Scene) -> Option<TrackOutcome> {
+        let params = TrackParams { sigma_px: 0.05, ..TrackParams::default() };
+        track_update(&s.camera, &UnitQuaternion::identity(), &mut s.filter, &s.anchor, &s.later, &params)
     }
 
     #[test]
     fn tracks_measure_the_velocity_whatever_the_map_says() {
         let mut s = scene(40);
         let before = s.filter.covariance;
-        let o = track_update(
-            &s.camera,
-            &UnitQuaternion::identity(),
-            &mut s.filter,
-            &s.anchor,
-            &s.later,
-            &sharp(),
-        )
-        .expect("an update");
+        let o = update(&mut s).expect("an update");
         assert_eq!(o.used, o.pairs);
         assert!(o.pairs >= 30, "{o:?}");
         assert!(o.chi2 <= o.limit, "{o:?}");
@@ -385,15 +376,7 @@ mod tests {
         let mut s = scene(40);
         s.later[3].pixel.u += 4.0;
         s.later[7].pixel.v -= 1.5;
-        let o = track_update(
-            &s.camera,
-            &UnitQuaternion::identity(),
-            &mut s.filter,
-            &s.anchor,
-            &s.later,
-            &sharp(),
-        )
-        .expect("an update");
+        let o = update(&mut s).expect("an update");
         assert_eq!(o.used, o.pairs - 2, "{o:?}");
         let dv = s.filter.state.velocity_ecef_m_s - s.true_velocity;
         let up = s.filter.state.position.to_geodetic().up_ecef();
@@ -402,10 +385,8 @@ mod tests {
         // Four tracks: fewer than the five an update needs.
         let mut s = scene(40);
         let before = s.filter.clone();
-        let few: Vec<TrackPoint> = s.later[..4].to_vec();
-        let o =
-            track_update(&s.camera, &UnitQuaternion::identity(), &mut s.filter, &s.anchor, &few, &sharp())
-                .expect("an outcome");
+        s.later.truncate(4);
+        let o = update(&mut s).expect("an outcome");
         assert_eq!((o.pairs, o.used), (4, 0));
         assert_eq!(s.filter, before);
 
@@ -414,28 +395,16 @@ mod tests {
         // gates.
         let mut s = scene(40);
         let before = s.filter.clone();
-        let moved: Vec<TrackPoint> = s
-            .later
-            .iter()
-            .map(|p| TrackPoint { pixel: Pixel::new(p.pixel.u + 30.0, p.pixel.v), ..*p })
-            .collect();
-        let o =
-            track_update(&s.camera, &UnitQuaternion::identity(), &mut s.filter, &s.anchor, &moved, &sharp())
-                .expect("an outcome");
+        for p in &mut s.later {
+            p.pixel.u += 30.0;
+        }
+        let o = update(&mut s).expect("an outcome");
         assert_eq!(o.used, 0, "{o:?}");
         assert_eq!(s.filter, before);
 
         // Images too far apart: no update.
         let mut s = scene(40);
         s.anchor.t = -5.0;
-        assert!(track_update(
-            &s.camera,
-            &UnitQuaternion::identity(),
-            &mut s.filter,
-            &s.anchor,
-            &s.later,
-            &sharp()
-        )
-        .is_none());
+        assert!(update(&mut s).is_none());
     }
 }

@@ -10,14 +10,15 @@
 # ms; results in target/realistic/acquisition/results.md.
 # Usage: scripts/bench_acquisition.sh [DIST_M[:DEG] ...]
 #   (default: 3000 6000 10000 10000:10)
+# Environment: OUT=target/realistic; TRN=path of a trn binary (default: built)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:-target/realistic}
 src="$OUT/flights/sierra-balloon-nadir-lost"
 db="$OUT/db/sierra.gpkg"
 [ -f "$src/frames.csv" ] && [ -f "$db" ] || { echo "run scripts/bench_realistic.sh first ($src, $db)" >&2; exit 1; }
-cargo build --release --quiet --bin trn
-trn=target/release/trn
+if [ -z "${TRN:-}" ]; then cargo build --release --quiet --bin trn; fi
+trn=${TRN:-target/release/trn}
 cases=("$@"); [ ${#cases[@]} -eq 0 ] && cases=(3000 6000 10000 10000:10)
 work="$OUT/acquisition"
 mkdir -p "$work"

@@ -409,13 +409,13 @@ fn rejected_solutions_are_counted_and_the_next_image_is_processed_at_once() {
     assert_eq!(r.len(), frames, "every frame processed after a rejection");
     assert!(r.iter().all(|(_, st, _)| st == "propagated"));
     // The rejected solutions' inliers are reported, and counted by reason.
-    // (Without a fix the inertial filter's position doubt grows with its
-    // initial velocity doubt, 300 m/s, until the searches are acquisitions
-    // that this small image's repeated road grid defeats: the last frames
-    // have no solution at all.)
+    // (Before a first fix every refused frame doubles the inertial filter's
+    // pose doubt (the guess may be worse than told), so the searches soon
+    // are acquisitions that this small image's repeated road grid defeats:
+    // the later frames have no solution at all.)
     let with_solution = r.iter().filter(|(_, _, n)| *n > 0).count();
-    assert!(with_solution >= 3, "{r:?}");
-    assert!(r[..3].iter().all(|(_, _, n)| *n > 0), "{r:?}");
+    assert!(with_solution >= 2, "{r:?}");
+    assert!(r[..2].iter().all(|(_, _, n)| *n > 0), "{r:?}");
     assert_eq!(report["rejected"]["few_inliers"].as_u64().unwrap() as usize, with_solution);
     assert_eq!(report["rejected"]["inconsistent"].as_u64().unwrap(), 0);
     assert_eq!(report["rejected"]["height"].as_u64().unwrap(), 0);

@@ -524,8 +524,20 @@ impl InsFilter {
     /// (their standard deviations), keeping every correlation: what the
     /// filter does when an image it could not explain says it may be wrong.
     pub fn inflate(&mut self, factor: f64) {
+        self.scale_sigmas(ATT..VEL + 3, factor);
+    }
+
+    /// Scales the uncertainty of attitude and position only by `factor`
+    /// (the velocity's is left): what the filter does when the images have
+    /// not yet confirmed an initial guess, which says nothing of velocity.
+    pub fn inflate_pose(&mut self, factor: f64) {
+        self.scale_sigmas(ATT..POS + 3, factor);
+    }
+
+    /// `P <- D P D` with `D` = `factor` on the states of `range`, 1 elsewhere.
+    fn scale_sigmas(&mut self, range: std::ops::Range<usize>, factor: f64) {
         let mut d = SMatrix::<f64, N, 1>::repeat(1.0);
-        for i in ATT..VEL + 3 {
+        for i in range {
             d[i] = factor;
         }
         let scale = Covariance::from_diagonal(&d);
@@ -935,6 +947,25 @@ mod tests {
             (f.covariance[(POS, VEL)] - 4.0 * before[(POS, VEL)]).abs() <= 1e-9 * before[(POS, VEL)].abs()
         );
         assert_eq!(f.covariance[(GYRO_BIAS, GYRO_BIAS)], before[(GYRO_BIAS, GYRO_BIAS)]);
+        // The pose alone: the velocity's block stays, its correlations with
+        // the pose scale once.
+        let mut g = f.clone();
+        let inflated = f.covariance;
+        g.inflate_pose(3.0);
+        assert!(
+            (g.covariance[(ATT + 1, ATT + 1)] - 9.0 * inflated[(ATT + 1, ATT + 1)]).abs()
+                < 1e-9 * inflated[(ATT + 1, ATT + 1)]
+        );
+        assert!(
+            (g.covariance[(POS, POS + 2)] - 9.0 * inflated[(POS, POS + 2)]).abs()
+                <= 1e-9 * inflated[(POS, POS + 2)].abs()
+        );
+        assert!(
+            (g.covariance[(POS, VEL)] - 3.0 * inflated[(POS, VEL)]).abs()
+                <= 1e-9 * inflated[(POS, VEL)].abs()
+        );
+        assert_eq!(g.covariance.fixed_view::<3, 3>(VEL, VEL), inflated.fixed_view::<3, 3>(VEL, VEL));
+        assert!(inflated[(POS, VEL)].abs() > 0.0);
         // (The map offset is off: its block is zero.)
         assert!(f.covariance.fixed_view::<15, 15>(0, 0).into_owned().cholesky().is_some());
         let fix = CameraPose::new(Ecef(turn.at(2.0).p + Vector3::new(300.0, 0.0, 0.0)), turn.at(2.0).q);

@@ -24,7 +24,7 @@ use crate::ins::{InsErrors, InsFilter, InsInit, InsState};
 use crate::predict::{predict, Predicted};
 use crate::propagate::propagate_with_bias;
 use crate::track::{track_update, TrackAnchor, TrackParams, TrackPoint};
-use trn_view::footprint::{footprint, FootprintParams};
+use trn_view::footprint::{footprint, Footprint, FootprintParams};
 use trn_view::DbLevel;
 use trn_view::LandmarkSource;
 
@@ -338,6 +338,10 @@ pub struct Navigator<'a> {
     /// The last frame's matches and the filter's pose then: the next
     /// frame's track update ([`crate::track`]).
     track: Option<TrackAnchor>,
+    /// A frame before the first fix gave none, and the filter's pose
+    /// uncertainty was inflated ([`Self::doubt_unconfirmed_guess`]): the
+    /// first fix restarts the pose, as an acquisition's does.
+    guess_doubted: bool,
 }
 
 /// A frame's prediction: the pose guess and how far it may be off.
@@ -348,6 +352,11 @@ struct Prediction {
     att_cov: Matrix3<f64>,
     /// The guess' position error (m, 1 sigma, 3D).
     sigma_m: f64,
+    /// The inertial filter's covariance of the apparent pose (`[dtheta;
+    /// dp]`, ECEF): with it the search radius is the largest pixel sigma
+    /// it gives in the footprint ([`search_sigma_px`]); without it,
+    /// `att_cov` and `sigma_m` added.
+    pose_cov: Option<Matrix6<f64>>,
     filter: Carried,
 }
 
@@ -503,6 +512,7 @@ impl<'a> Navigator<'a> {
             terrain_h_m,
             ins,
             track: None,
+            guess_doubted: false,
         })
     }
 
@@ -527,6 +537,7 @@ impl<'a> Navigator<'a> {
                 guess,
                 att_cov: cov.fixed_view::<3, 3>(0, 0).into_owned(),
                 sigma_m: (across2 + along2 * tan_corner2).sqrt().max(2.0),
+                pose_cov: Some(cov),
                 filter: Carried::Ins(f),
             };
         }
@@ -551,7 +562,7 @@ impl<'a> Navigator<'a> {
             (CameraPose::new(position, self.pose.q_ecef_cam), cov)
         };
         let att_cov = attitude.fixed_view::<3, 3>(0, 0).into_owned();
-        Prediction { guess, att_cov, sigma_m, filter: Carried::Attitude(attitude) }
+        Prediction { guess, att_cov, sigma_m, pose_cov: None, filter: Carried::Attitude(attitude) }
     }
 
     /// The camera for a frame at `t`: the calibration's estimate, with the
@@ -664,6 +675,22 @@ impl<'a> Navigator<'a> {
         cal.pose_covariance(&frame)
     }
 
+    /// Before the first fix, a frame that gave none says the initial guess
+    /// may be worse than `--init-sigma-m` / `--init-sigma-deg` claim: the
+    /// inertial filter's pose uncertainty doubles (not the velocity's: the
+    /// first fix then restarts the pose and keeps the velocity's prior), so
+    /// the search widens frame by frame up to an acquisition (a guess 3 km
+    /// off, told 300 m, is fixed on its third frame). Once an image has
+    /// confirmed the pose, a frame without a fix (cloud) leaves the
+    /// covariance to the IMU.
+    fn doubt_unconfirmed_guess(&mut self, t: f64, filter: &mut Carried) {
+        if let (None, Carried::Ins(f)) = (self.last_fix, filter) {
+            debug!("t {t:.3}: no fix yet: the guess's uncertainty doubles");
+            f.inflate_pose(2.0);
+            self.guess_doubted = true;
+        }
+    }
+
     /// The pose to report for a frame without an accepted fix.
     fn carry(&mut self, t: f64, pred: Prediction) {
         match pred.filter {
@@ -727,7 +754,11 @@ impl<'a> Navigator<'a> {
             // An acquisition's pose is kilometres from the prediction: as an
             // update, the filter's correlations would turn the jump into
             // kilometres per second of velocity. It restarts the pose.
-            _ if sol.acquisition => {
+            // So is a first fix after the guess was doubted: the inflated
+            // covariance let it through the gate, and the same
+            // correlations would take the jump for velocity.
+            _ if sol.acquisition || self.guess_doubted => {
+                self.guess_doubted = false;
                 if let Some(r) = self.refine_inliers(sol, None) {
                     debug!("t {t:.3}: acquired: the filter's pose restarts from the image's");
                     f.reset_pose(&q, &r.pose, &r.covariance, 0.0);
@@ -798,7 +829,7 @@ impl<'a> Navigator<'a> {
         let start = Instant::now();
         self.update_camera(t);
         let pred = self.predict(t);
-        let outcome = self.solve(t, &pred.guess, &pred.att_cov, pred.sigma_m, image);
+        let outcome = self.solve(t, &pred, image);
         let found = match &outcome {
             Ok(sol) => matches_of(sol),
             Err(e) => e.found.clone(),
@@ -863,8 +894,12 @@ impl<'a> Navigator<'a> {
                         // so the next frames search wider and a run of such
                         // frames gets through the gate.
                         f.inflate(2.0);
-                    } else if !sol.acquisition && !matches!(rejection, Some(Rejection::Height { .. })) {
-                        gated_matches = self.gated_update(t, &mut pred.filter, &found);
+                        self.guess_doubted |= self.last_fix.is_none();
+                    } else {
+                        if !sol.acquisition && !matches!(rejection, Some(Rejection::Height { .. })) {
+                            gated_matches = self.gated_update(t, &mut pred.filter, &found);
+                        }
+                        self.doubt_unconfirmed_guess(t, &mut pred.filter);
                     }
                     self.carry(t, pred);
                 }
@@ -873,6 +908,7 @@ impl<'a> Navigator<'a> {
             }
             Err(NoSolution { matches, found }) => {
                 gated_matches = self.gated_update(t, &mut pred.filter, &found);
+                self.doubt_unconfirmed_guess(t, &mut pred.filter);
                 self.carry(t, pred);
                 (FixStatus::Propagated, 0, matches, Vec::new(), Vec::new())
             }
@@ -1015,16 +1051,9 @@ impl<'a> Navigator<'a> {
     }
 
     /// Coarse-to-fine pose from one image ([`Self::stage`] per pyramid level).
-    fn solve(
-        &mut self,
-        t: f64,
-        guess: &CameraPose,
-        att_cov: &Matrix3<f64>,
-        sigma_m: f64,
-        image: GreyImage,
-    ) -> Result<Solution, NoSolution> {
-        let att_cov = *att_cov;
-        let sigma_rad = att_cov.trace().sqrt();
+    fn solve(&mut self, t: f64, pred: &Prediction, image: GreyImage) -> Result<Solution, NoSolution> {
+        let guess = &pred.guess;
+        let att_cov = pred.att_cov;
         let prior = self
             .params
             .use_gyro
@@ -1044,7 +1073,15 @@ impl<'a> Navigator<'a> {
             debug!("t {t:.3}: {e}");
             NoSolution::default()
         })?;
-        let sigma_px = f * (sigma_rad + sigma_m / fp.center_range_m);
+        // The attitude's and the position's sigmas added: without the
+        // filter's covariance, the search's sigma; with it, for the log.
+        let added_px = f * (att_cov.trace().sqrt() + pred.sigma_m / fp.center_range_m);
+        let sigma_px = pred
+            .pose_cov
+            .as_ref()
+            .and_then(|c| search_sigma_px(&self.camera, guess, c, &fp))
+            .unwrap_or(added_px);
+        debug!("t {t:.3}: search sigma {sigma_px:.1} px (attitude and position added: {added_px:.1} px)");
         // A search wider than half the focal length (a guess kilometres
         // off) is an acquisition: it may reach the whole image, and the
         // landmarks come from the guessed footprint widened by the search,
@@ -1707,6 +1744,32 @@ fn inlier_rms_px(sol: &Solution) -> f64 {
     (sum / n.max(1) as f64).sqrt()
 }
 
+/// The largest pixel sigma (1 sigma along the worst direction, full-resolution
+/// pixels) that the apparent pose's covariance `cov` (`[dtheta; dp]`, ECEF)
+/// gives a ground point of the footprint `fp` seen from `guess`: at its four
+/// corners and their centroid, `J cov J^T` with `J` the pixel's Jacobian in
+/// the pose. Unlike a sum of the attitude's and the position's sigmas, it
+/// keeps their correlation: after a fix a tilt and the shift it trades
+/// with move the landmarks together, and the two cancel in the image.
+/// `None` when no sample projects.
+fn search_sigma_px(
+    camera: &CameraModel,
+    guess: &CameraPose,
+    cov: &Matrix6<f64>,
+    fp: &Footprint,
+) -> Option<f64> {
+    let corners: Vec<Vector3<f64>> = fp.corners.iter().map(|g| g.to_ecef().0).collect();
+    let centre = corners.iter().sum::<Vector3<f64>>() / corners.len() as f64;
+    corners
+        .iter()
+        .chain(std::iter::once(&centre))
+        .filter_map(|x| {
+            let (_, j) = project_with_jacobian(camera, guess, x)?;
+            Some((j * cov * j.transpose()).symmetric_eigenvalues().max().max(0.0).sqrt())
+        })
+        .reduce(f64::max)
+}
+
 /// The search radius at the next finer pyramid level after a coarse level
 /// gave no trustworthy pose: the same ground radius (twice the pixels), but
 /// at most twice `max_radius_px`. Beyond that the coarser level has searched
@@ -1953,6 +2016,72 @@ mod tests {
         assert_eq!(choose_lighting(&baked, Some(&sun(-270.0, 41.0))), (3, true));
         // The nearest is too far to count as the flight's.
         assert_eq!(choose_lighting(&baked, Some(&sun(180.0, 60.0))), (3, false));
+    }
+
+    /// `search_sigma_px` against brute force: poses drawn from the
+    /// covariance, the footprint's ground points projected, the largest
+    /// per-point pixel sigma measured. A covariance whose tilt and shift
+    /// trade (what a fix leaves: 0.1 deg of tilt against 8.7 m of shift at
+    /// 5 km) moves the landmarks far less than the two sigmas added.
+    #[test]
+    fn the_search_sigma_is_the_pose_covariance_seen_in_the_image() {
+        let camera = CameraModel::from_fov(640, 480, 40.0);
+        let frame = LocalFrame::at(Geodetic::new(37.0, -118.0, 0.0));
+        let pose = CameraPose::look_at(
+            frame.to_ecef(Enu::new(0.0, 0.0, 5000.0)),
+            frame.to_ecef(Enu::new(0.0, 0.0, 0.0)),
+            frame.r_ecef_enu().column(1).into_owned(),
+        );
+        let fp = footprint(&camera, &pose, &FootprintParams::default()).unwrap();
+        let (east, north) =
+            (frame.r_ecef_enu().column(0).into_owned(), frame.r_ecef_enu().column(1).into_owned());
+        // Tilt about north (rad) with the eastward shift it trades with, plus
+        // small independent parts.
+        let tilt = 0.1f64.to_radians();
+        let mut l = Matrix6::<f64>::zeros();
+        l.fixed_view_mut::<3, 1>(0, 0).copy_from(&(north * tilt));
+        l.fixed_view_mut::<3, 1>(3, 0).copy_from(&(east * tilt * 5000.0));
+        for i in 1..6 {
+            l[(i, i)] = if i < 3 { 0.005f64.to_radians() } else { 2.0 };
+        }
+        let cov = l * l.transpose();
+        let got = search_sigma_px(&camera, &pose, &cov, &fp).unwrap();
+        // Brute force: draws d = L z, z ~ N(0, I).
+        let mut rng = 0x2545_f491_4f6c_dd1du64;
+        let mut normal = move || {
+            let mut u = || {
+                rng ^= rng << 13;
+                rng ^= rng >> 7;
+                rng ^= rng << 17;
+                (rng >> 11) as f64 / (1u64 << 53) as f64
+            };
+            let (u1, u2) = (1.0 - u(), u());
+            (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+        };
+        let corners: Vec<Vector3<f64>> = fp.corners.iter().map(|g| g.to_ecef().0).collect();
+        let centre = corners.iter().sum::<Vector3<f64>>() / 4.0;
+        let points: Vec<Vector3<f64>> = corners.iter().copied().chain([centre]).collect();
+        let n = 4000;
+        let mut sums = vec![Matrix2::<f64>::zeros(); points.len()];
+        for _ in 0..n {
+            let z = nalgebra::Vector6::from_fn(|_, _| normal());
+            let p = perturb_pose(&pose, &(l * z));
+            for (k, x) in points.iter().enumerate() {
+                let (a, b) =
+                    (pose.project(&camera, &Ecef(*x)).unwrap(), p.project(&camera, &Ecef(*x)).unwrap());
+                let d = Vector2::new(b.u - a.u, b.v - a.v);
+                sums[k] += d * d.transpose();
+            }
+        }
+        let brute =
+            sums.iter().map(|s| (s / n as f64).symmetric_eigenvalues().max().sqrt()).fold(0.0, f64::max);
+        assert!((got - brute).abs() < 0.05 * brute, "search sigma {got:.3} px, brute force {brute:.3} px");
+        // The attitude's and the position's sigmas added, as without the
+        // filter's covariance: several times wider.
+        let att = cov.fixed_view::<3, 3>(0, 0).trace().sqrt();
+        let pos = cov.fixed_view::<3, 3>(3, 3).trace().sqrt();
+        let added = camera.fx * (att + pos / fp.center_range_m);
+        assert!(added > 4.0 * got, "added {added:.2} px, covariance {got:.2} px");
     }
 
     #[test]

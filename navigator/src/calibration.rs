@@ -203,9 +203,26 @@ impl CalibrationFilter {
     /// parameter: a nadir view turns a principal point error into a tilt,
     /// and the tilt into a horizontal shift).
     pub fn pose_covariance(&self, frame: &FrameCalibration) -> nalgebra::Matrix6<f64> {
+        self.pose_covariance_of(frame, true)
+    }
+
+    /// [`Self::pose_covariance`] without the focal length's share: what
+    /// the other intrinsics add where the inertial filter carries the focal
+    /// length ([`Self::focal_evidence`]).
+    pub fn pose_covariance_but_focal(&self, frame: &FrameCalibration) -> nalgebra::Matrix6<f64> {
+        self.pose_covariance_of(frame, false)
+    }
+
+    fn pose_covariance_of(&self, frame: &FrameCalibration, focal: bool) -> nalgebra::Matrix6<f64> {
         // A state change dx is the frame's relative correction T dx.
         let s = frame.pose_sensitivity * self.to_state();
         let mut p = self.p;
+        if !focal {
+            for i in 0..4 {
+                p[(FOCAL, i)] = 0.0;
+                p[(i, FOCAL)] = 0.0;
+            }
+        }
         for i in 0..4 {
             if !self.estimated(i) {
                 p[(i, i)] = self.prior_var(i);
@@ -260,6 +277,65 @@ impl CalibrationFilter {
         }
     }
 
+    /// Whether the focal length is the only intrinsic estimated: another
+    /// filter (the inertial one) can then carry it, with
+    /// [`Self::focal_evidence`] and [`Self::shift_focal`].
+    pub fn focal_only(&self) -> bool {
+        (1..4).all(|i| !self.estimated(i))
+    }
+
+    /// Share of an independent frame a frame at `t_frame` counts for.
+    fn weight(&self, t_frame: f64) -> f64 {
+        match self.last_update_t {
+            Some(t0) if self.params.correlation_s > 0.0 => {
+                ((t_frame - t0) / self.params.correlation_s).clamp(0.0, 1.0)
+            }
+            _ => 1.0,
+        }
+    }
+
+    /// A frame's evidence on the focal length for a filter that carries it
+    /// with variance `prior_var` (relative to the camera the frame was
+    /// solved with; [`Self::focal_only`]): the frame's own estimate of the
+    /// focal error and its variance, weighed as [`Self::update`] weighs it
+    /// and through the same gates; `None` when the frame is too weak, counts
+    /// for nothing yet, or disagrees with the prior. The estimate stays
+    /// where it is until [`Self::shift_focal`].
+    pub fn focal_evidence(
+        &mut self,
+        t_frame: f64,
+        frame: &FrameCalibration,
+        prior_var: f64,
+    ) -> Option<(f64, f64)> {
+        let (z, sigma) = self.frame_focal(frame);
+        if !(sigma <= self.params.max_frame_sigma_rel) {
+            self.weak += 1;
+            return None;
+        }
+        let weight = self.weight(t_frame);
+        if !(weight > 0.0) {
+            return None;
+        }
+        let variance = sigma * sigma / weight;
+        // The chi-square of [`Self::update`] with one state: z^2 / (1/h + p).
+        if !(z * z / (variance + prior_var) <= FRAME_GATE_CHI2[0]) {
+            self.refused += 1;
+            return None;
+        }
+        self.updates += 1;
+        self.last_update_t = Some(t_frame);
+        Some((z, variance))
+    }
+
+    /// Moves the focal length by `relative` of the current camera's and
+    /// sets its variance (`variance_rel`, relative to the current camera):
+    /// what a filter that carries it ([`Self::focal_evidence`]) learnt.
+    pub fn shift_focal(&mut self, relative: f64, variance_rel: f64) {
+        let scale = 1.0 + self.x[FOCAL];
+        self.x[FOCAL] += relative * scale;
+        self.p[(FOCAL, FOCAL)] = variance_rel.max(0.0) * scale * scale;
+    }
+
     /// One frame's update (see the module docs); `None` when the frame is
     /// too weak or refused by the gate (nothing changes).
     pub fn update(&mut self, t_frame: f64, frame: &FrameCalibration) -> Option<CalibrationStep> {
@@ -268,12 +344,7 @@ impl CalibrationFilter {
             self.weak += 1;
             return None;
         }
-        let weight = match self.last_update_t {
-            Some(t0) if self.params.correlation_s > 0.0 => {
-                ((t_frame - t0) / self.params.correlation_s).clamp(0.0, 1.0)
-            }
-            _ => 1.0,
-        };
+        let weight = self.weight(t_frame);
         let e: Vec<usize> = (0..4).filter(|&i| self.estimated(i)).collect();
         let n = e.len();
         let (h_rel, g_rel) = self.eliminated(frame, &e, |i| !self.estimated(i));

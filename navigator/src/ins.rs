@@ -17,10 +17,19 @@
 //! plus error: `[dtheta (rad, ECEF: q = exp(dtheta) q_est); dr (m); dv (m/s);
 //! dbg (rad/s, gyro bias, IMU frame); dba (m/s^2, accelerometer bias, IMU
 //! frame); dm (m, map offset); dtau (s, time offset); dm_theta (rad, the
-//! map offset's attitude part)]`. Its dynamics (Groves eq. 14.48-14.50):
+//! map offset's attitude part); dfocal (relative, the camera's focal
+//! length)]`. Its dynamics (Groves eq. 14.48-14.50):
 //! `dtheta' = -[we]x dtheta - R dbg`, `dr' = dv`,
 //! `dv' = -[R f]x dtheta + Gamma dr - 2 [we]x dv - R dba`, the biases random
 //! walks, and the map offset (both parts) a first-order Gauss-Markov process.
+//!
+//! **Focal length.** A pose solved with a focal length short by `e` sees the
+//! terrain `e` of the range closer (a nadir view cannot tell the two
+//! apart). Where the accelerometer measures the motion the images see
+//! shortened (a rocket's climb: the range grows by kilometres per second),
+//! the two part: the apparent pose is `[...] - S dfocal`, `S` the frame's
+//! [`FocalSensitivity`], and the focal error is a state (a random walk)
+//! whenever its prior is not zero.
 //!
 //! **Map offset.** The landmarks are not the world: a database whose heights
 //! or orthoimage are off by tens of metres shifts every fix from the same
@@ -54,7 +63,7 @@ use trn_vision::pnp::rotation_vector;
 use crate::propagate::{for_each_segment, strapdown_increment};
 
 /// Dimension of the error state.
-pub const N: usize = 22;
+pub const N: usize = 23;
 /// Offsets of the error state's blocks.
 pub const ATT: usize = 0;
 pub const POS: usize = 3;
@@ -64,6 +73,7 @@ pub const ACCEL_BIAS: usize = 12;
 pub const MAP: usize = 15;
 pub const TIME: usize = 18;
 pub const MAP_ATT: usize = 19;
+pub const FOCAL: usize = 22;
 
 pub type Covariance = SMatrix<f64, N, N>;
 
@@ -90,6 +100,8 @@ pub struct InsErrors {
     /// correlation time. A narrow view trades a tilt for a shift; the
     /// database's errors move both.
     pub map_att_sigma_rad: f64,
+    /// Random walk of the camera's focal length (relative, per sqrt(s)).
+    pub focal_walk_rel_sqrt_s: f64,
 }
 
 /// Initial uncertainty (1 sigma per axis).
@@ -102,6 +114,8 @@ pub struct InsInit {
     pub accel_bias_m_s2: f64,
     /// Camera-IMU time offset (s; 0: not estimated).
     pub time_offset_s: f64,
+    /// The camera's focal length (relative; 0: not estimated).
+    pub focal_rel: f64,
 }
 
 /// The estimated state (the nominal state of the error-state filter).
@@ -132,6 +146,11 @@ pub struct InsFilter {
     pub state: InsState,
     pub covariance: Covariance,
     pub errors: InsErrors,
+    /// The estimated error of the focal length of the camera the images are
+    /// solved with (relative: the true focal length is that camera's times
+    /// `1 + this`); the owner of the camera takes it with
+    /// [`Self::take_focal_error`], which restarts it at zero.
+    pub focal_error_rel: f64,
 }
 
 fn block(p: &mut Covariance, at: usize, sigma: f64) {
@@ -180,7 +199,8 @@ impl InsFilter {
         block(&mut p, MAP, errors.map_sigma_m);
         block(&mut p, MAP_ATT, errors.map_att_sigma_rad);
         p[(TIME, TIME)] = init.time_offset_s * init.time_offset_s;
-        Self { state, covariance: p, errors }
+        p[(FOCAL, FOCAL)] = init.focal_rel * init.focal_rel;
+        Self { state, covariance: p, errors, focal_error_rel: 0.0 }
     }
 
     /// Carries the state and covariance to `t1` through the IMU samples
@@ -272,6 +292,9 @@ impl InsFilter {
             acc.q[MAP + i] += map_var;
             acc.q[MAP_ATT + i] += map_att_var;
         }
+        if self.covariance[(FOCAL, FOCAL)] > 0.0 {
+            acc.q[FOCAL] += e.focal_walk_rel_sqrt_s.powi(2) * dt;
+        }
         acc.dt += dt;
         acc.map_decay *= decay;
         if acc.dt >= COVARIANCE_STEP_S {
@@ -319,8 +342,10 @@ impl InsFilter {
         }
     }
 
-    /// `H` of the apparent camera pose `[dtheta + dm_theta + w dtau; dr + dm + v dtau]`.
-    fn pose_rows(&self) -> SMatrix<f64, 6, N> {
+    /// `H` of the apparent camera pose `[dtheta + dm_theta + w dtau; dr + dm
+    /// + v dtau]`, solved with a camera whose focal length may be off:
+    /// `- S dfocal` added (see [`FocalSensitivity`]).
+    fn pose_rows_with(&self, focal: &FocalSensitivity) -> SMatrix<f64, 6, N> {
         let mut h = SMatrix::<f64, 6, N>::zeros();
         h.fixed_view_mut::<3, 3>(0, ATT).copy_from(&Matrix3::identity());
         h.fixed_view_mut::<3, 3>(3, POS).copy_from(&Matrix3::identity());
@@ -328,6 +353,7 @@ impl InsFilter {
         h.fixed_view_mut::<3, 3>(0, MAP_ATT).copy_from(&Matrix3::identity());
         h.fixed_view_mut::<3, 1>(0, TIME).copy_from(&self.state.rate_ecef_rad_s);
         h.fixed_view_mut::<3, 1>(3, TIME).copy_from(&self.state.velocity_ecef_m_s);
+        h.fixed_view_mut::<6, 1>(0, FOCAL).copy_from(&-focal.0);
         h
     }
 
@@ -341,13 +367,24 @@ impl InsFilter {
     /// over the time offset) and its covariance (`[dtheta; dp]`, as
     /// `trn_vision::pnp`'s).
     pub fn apparent_pose(&self, q_imu_cam: &UnitQuaternion<f64>) -> (CameraPose, Matrix6<f64>) {
-        let h = self.pose_rows();
+        self.apparent_pose_with(q_imu_cam, &FocalSensitivity::NONE)
+    }
+
+    /// [`Self::apparent_pose`] as a frame solved with the current camera
+    /// sees it, its focal length uncertain ([`FocalSensitivity`]).
+    pub fn apparent_pose_with(
+        &self,
+        q_imu_cam: &UnitQuaternion<f64>,
+        focal: &FocalSensitivity,
+    ) -> (CameraPose, Matrix6<f64>) {
+        let h = self.pose_rows_with(focal);
         let s = &self.state;
+        let shift = self.time_shift() - focal.0 * self.focal_error_rel;
         let pose = CameraPose::new(
             Ecef(s.position.0 + s.map_offset_ecef_m),
             UnitQuaternion::from_scaled_axis(s.map_offset_att_rad) * s.q_ecef_imu * q_imu_cam,
         );
-        (perturb(&pose, &self.time_shift()), h * self.covariance * h.transpose())
+        (perturb(&pose, &shift), h * self.covariance * h.transpose())
     }
 
     /// The gyro bias's estimate and covariance (rad/s, IMU frame).
@@ -401,8 +438,23 @@ impl InsFilter {
         posterior: &CameraPose,
         posterior_cov: &Matrix6<f64>,
     ) -> bool {
-        let h = self.pose_rows();
-        let (pred, m) = self.apparent_pose(q_imu_cam);
+        self.condition_on_pose_with(q_imu_cam, posterior, posterior_cov, &FocalSensitivity::NONE)
+    }
+
+    /// [`Self::condition_on_pose`] with a posterior computed with
+    /// [`Self::apparent_pose_with`] as its prior: the focal length's error
+    /// moves with the pose by its correlation with it, which the inertial
+    /// trajectory builds (a rocket's climb, measured by the accelerometer,
+    /// against the range the images see).
+    pub fn condition_on_pose_with(
+        &mut self,
+        q_imu_cam: &UnitQuaternion<f64>,
+        posterior: &CameraPose,
+        posterior_cov: &Matrix6<f64>,
+        focal: &FocalSensitivity,
+    ) -> bool {
+        let h = self.pose_rows_with(focal);
+        let (pred, m) = self.apparent_pose_with(q_imu_cam, focal);
         let Some(m_inv) = m.cholesky().map(|c| c.inverse()) else { return false };
         let k = self.covariance * h.transpose() * m_inv;
         let dx = k * pose_difference(posterior, &pred);
@@ -518,6 +570,38 @@ impl InsFilter {
         s.map_offset_ecef_m += v(MAP);
         s.map_offset_att_rad += v(MAP_ATT);
         s.time_offset_s += dx[TIME];
+        self.focal_error_rel += dx[FOCAL];
+    }
+
+    /// A direct measurement of the focal length's error (relative to the
+    /// camera in use) with variance `variance`: what a frame's relief says
+    /// of the lens once its pose is eliminated
+    /// ([`crate::calibration::CalibrationFilter::update`]); the pose moves
+    /// with it by their correlation. Returns false, changing nothing, when
+    /// the focal length is not estimated or the variance is not positive.
+    pub fn focal_measurement(&mut self, measured_rel: f64, variance: f64) -> bool {
+        let p = self.covariance[(FOCAL, FOCAL)];
+        if !(p > 0.0 && variance > 0.0) {
+            return false;
+        }
+        let k = self.covariance.column(FOCAL) / (p + variance);
+        let dx = k * (measured_rel - self.focal_error_rel);
+        let p_new = self.covariance - k * self.covariance.row(FOCAL);
+        self.covariance = (p_new + p_new.transpose()) * 0.5;
+        self.apply(&dx);
+        true
+    }
+
+    /// Whether the focal length is a state (its prior was not zero).
+    pub fn estimates_focal(&self) -> bool {
+        self.covariance[(FOCAL, FOCAL)] > 0.0
+    }
+
+    /// The focal length's estimated error and its variance (relative); the
+    /// error restarts at zero: the caller moves its camera by it.
+    pub fn take_focal_error(&mut self) -> (f64, f64) {
+        let d = std::mem::take(&mut self.focal_error_rel);
+        (d, self.covariance[(FOCAL, FOCAL)])
     }
 
     /// Scales the uncertainty of position, velocity and attitude by `factor`
@@ -572,6 +656,20 @@ impl InsFilter {
             p[(i, i)] = p[(i, i)].max(velocity_sigma_m_s * velocity_sigma_m_s);
         }
     }
+}
+
+/// How a pose solved from a frame's matches moves per unit of the camera's
+/// relative focal length error (`[dtheta (rad, ECEF); dp (m, ECEF)]`, the
+/// focal column of `trn_vision::calib::FrameCalibration::pose_sensitivity`):
+/// a pose solved with a camera whose focal length is short by `e` is the
+/// true pose less `S e` (a nadir view's range, shortened by the focal
+/// error's share).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FocalSensitivity(pub Vector6<f64>);
+
+impl FocalSensitivity {
+    /// No focal error modelled.
+    pub const NONE: Self = Self(Vector6::new(0.0, 0.0, 0.0, 0.0, 0.0, 0.0));
 }
 
 /// The result of [`InsFilter::linear_update`].
@@ -757,6 +855,7 @@ mod tests {
             map_sigma_m: 0.0,
             map_tau_s: 0.0,
             map_att_sigma_rad: 0.0,
+            focal_walk_rel_sqrt_s: 0.0,
         }
     }
 
@@ -768,6 +867,7 @@ mod tests {
             gyro_bias_rad_s: 10f64.to_radians() / 3600.0,
             accel_bias_m_s2: 0.02,
             time_offset_s: 0.0,
+            focal_rel: 0.0,
         }
     }
 
@@ -890,6 +990,88 @@ mod tests {
     }
 
     #[test]
+    fn the_focal_length_is_learnt_where_the_boresight_turns_and_a_nadir_view_needs_relief() {
+        // Images solved with a focal length 0.3% short see the terrain 0.3%
+        // of the range closer, along the boresight `b`: the pose that
+        // corrects the focal length moves by `S = [0; -b R]` per unit. On
+        // the 2 km turn (2 g sideways, exact IMU but for noise and biases)
+        // a camera 30 degrees off nadir turns its boresight with the body:
+        // the apparent position circles with it, which the accelerometer
+        // tells from a position error. A nadir camera's offset stays
+        // vertical: a position error as good as a focal one, until the
+        // relief says which (a direct measurement of the focal length),
+        // and then the position follows it by their correlation.
+        let turn = Turn::new();
+        let (e, mut i) = (errors(), init());
+        i.focal_rel = 0.005;
+        // Where the vehicle is, the images alone say.
+        i.position_m = 1000.0;
+        let (imu, _, _) = turn.imu(100.0, 61.0, Some((&e, &i, 11)));
+        let focal_true = 0.003;
+        let run = |tilt_deg: f64| -> InsFilter {
+            let q_imu_cam = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), tilt_deg.to_radians());
+            let range = 30_000.0 / tilt_deg.to_radians().cos();
+            let mut f = InsFilter::new(turn.state(0.0), &i, e);
+            let mut rng = Rng::new(12);
+            let mut draw = |sigma: f64| Vector3::new(rng.normal(), rng.normal(), rng.normal()) * sigma;
+            let r = Matrix6::from_diagonal(&Vector6::new(1e-8, 1e-8, 1e-8, 25.0, 25.0, 25.0));
+            for k in 1..=60 {
+                let t = k as f64;
+                f.propagate(t, &imu);
+                let truth = turn.at(t);
+                let cam = CameraPose::new(Ecef(truth.p), truth.q * q_imu_cam);
+                let b = cam.q_ecef_cam * Vector3::z();
+                let sensitivity = FocalSensitivity(Vector6::new(0.0, 0.0, 0.0, -b.x, -b.y, -b.z) * range);
+                let mut d = Vector6::zeros();
+                d.fixed_rows_mut::<3>(0).copy_from(&draw(1e-4));
+                d.fixed_rows_mut::<3>(3).copy_from(&(draw(5.0) + b * (range * focal_true)));
+                let seen = perturb(&cam, &d);
+                // The Kalman posterior of the apparent pose, as the tight
+                // navigator's refinement with the prediction as its prior.
+                let (pred, m) = f.apparent_pose_with(&q_imu_cam, &sensitivity);
+                let s_inv = (m + r).try_inverse().unwrap();
+                let posterior = perturb(&pred, &(m * s_inv * pose_difference(&seen, &pred)));
+                let post_cov = m - m * s_inv * m;
+                assert!(f.condition_on_pose_with(
+                    &q_imu_cam,
+                    &posterior,
+                    &((post_cov + post_cov.transpose()) * 0.5),
+                    &sensitivity
+                ));
+            }
+            f
+        };
+        let mut oblique = run(30.0);
+        let (est, var) = oblique.take_focal_error();
+        println!(
+            "focal error, 30 deg off nadir: {:+.4}% +- {:.4}% (truth +0.3%)",
+            est * 100.0,
+            var.sqrt() * 100.0
+        );
+        assert!(var.sqrt() < 0.0005 && (est - focal_true).abs() < 3.0 * var.sqrt(), "{est} {}", var.sqrt());
+        assert_eq!(oblique.focal_error_rel, 0.0, "taken");
+        let pos_err = (oblique.state.position.0 - turn.at(60.0).p).norm();
+        assert!(pos_err < 15.0, "{pos_err} m");
+
+        let mut nadir = run(0.0);
+        let sigma = nadir.covariance[(FOCAL, FOCAL)].sqrt();
+        let pos_err = |f: &InsFilter| (f.state.position.0 - turn.at(60.0).p).norm();
+        let before = pos_err(&nadir);
+        println!(
+            "focal error, nadir: {:+.4}% +- {:.4}%, position {before:.1} m off",
+            nadir.focal_error_rel * 100.0,
+            sigma * 100.0
+        );
+        assert!(sigma > 0.004, "a nadir view on a level turn says nothing of the focal length: {sigma}");
+        // The relief's say: the focal length to 0.01%.
+        assert!(nadir.focal_measurement(focal_true, 1e-8));
+        let after = pos_err(&nadir);
+        println!("after a direct focal measurement: {after:.1} m off");
+        assert!(before > 40.0 && after < 15.0, "{before} -> {after} m");
+        assert!(!InsFilter::new(turn.state(0.0), &init(), e).focal_measurement(0.003, 1e-8), "not a state");
+    }
+
+    #[test]
     fn conditioning_on_a_pose_posterior_is_the_kalman_update() {
         // update_with_pose goes through condition_on_pose; check it against
         // the textbook update with H = [I6 0 ...] (map offset on), P random.
@@ -913,7 +1095,7 @@ mod tests {
         let (pred, _) = f.apparent_pose(&q_imu_cam);
         let y = Vector6::new(2e-4, -1e-4, 3e-4, 12.0, -7.0, 4.0);
         let r = Matrix6::from_diagonal(&Vector6::new(1e-7, 1e-7, 1e-7, 30.0, 30.0, 30.0));
-        let h = f.pose_rows();
+        let h = f.pose_rows_with(&FocalSensitivity::NONE);
         let p = f.covariance;
         let s = h * p * h.transpose() + r;
         let k = p * h.transpose() * s.try_inverse().unwrap();

@@ -20,7 +20,7 @@ use trn_vision::ransac::{ransac_p3p, RansacParams};
 use crate::attitude::{AttitudeFilter, GyroErrors};
 use crate::calibration::{CalibrationFilter, CalibrationParams};
 use crate::image::{GreyImage, Pyramid, UndistortLut};
-use crate::ins::{InsErrors, InsFilter, InsInit, InsState};
+use crate::ins::{FocalSensitivity, InsErrors, InsFilter, InsInit, InsState, FOCAL};
 use crate::predict::{predict, Predicted};
 use crate::propagate::propagate_with_bias;
 use crate::track::{track_update, TrackAnchor, TrackParams, TrackPoint};
@@ -132,6 +132,14 @@ pub struct NavParams {
     /// images update its velocity, gyro bias and time offset through the
     /// motion in between ([`crate::track`]).
     pub track_update: bool,
+    /// With the tight filter and a self-calibration of the focal length
+    /// alone, the filter carries the focal length as a state, so the motion
+    /// the accelerometer measures calibrates it too (a rocket's climb, or a
+    /// turning oblique view, against the range the images see). Off by
+    /// default: on the realistic flights a tactical-grade accelerometer
+    /// (2 mg) tells a rocket's focal error only to 0.25%, and a balloon's
+    /// pendulum lets the map's errors pass for a focal error (README).
+    pub inertial_focal: bool,
     pub track: TrackParams,
     /// A frame whose image-only pose is farther than this from the inertial
     /// filter's prediction (chi-square, 6 degrees of freedom) is rejected as
@@ -193,6 +201,7 @@ impl Default for NavParams {
             time_offset_sigma_s: 0.01,
             prior_gated_update: true,
             track_update: true,
+            inertial_focal: false,
             track: TrackParams::default(),
             // 99.9% of chi-square with 6 degrees of freedom.
             innovation_gate_chi2: 22.46,
@@ -437,6 +446,12 @@ impl<'a> Navigator<'a> {
         let near = trn_view::visible::terrain_near(source, &levels, &init.position)?;
         let terrain_h_m = near.height_m;
         let (lighting, lit_for_flight) = choose_lighting(&source.suns()?, params.sun.as_ref());
+        // The calibration whose focal length the inertial filter carries.
+        let focal_prior = params.calibration.filter(|c| {
+            params.filter == FilterMode::Tight
+                && params.inertial_focal
+                && CalibrationFilter::new(camera.model, *c).focal_only()
+        });
         let ins = (params.filter != FilterMode::Fixes && params.use_gyro).then(|| {
             let q_imu_cam = camera.q_cam_imu().inverse();
             let state = InsState {
@@ -462,6 +477,7 @@ impl<'a> Navigator<'a> {
                     gyro_bias_rad_s: deg_s(params.gyro_bias_deg_s),
                     accel_bias_m_s2: params.accel_bias_m_s2,
                     time_offset_s: params.time_offset_sigma_s,
+                    focal_rel: focal_prior.map_or(0.0, |c| c.focal_sigma_rel),
                 },
                 InsErrors {
                     gyro_arw_rad_sqrt_s: deg_s(params.gyro_arw_deg_sqrt_s),
@@ -472,6 +488,7 @@ impl<'a> Navigator<'a> {
                     map_sigma_m: params.map_sigma_m,
                     map_tau_s: params.map_tau_s,
                     map_att_sigma_rad: params.map_att_sigma_deg.to_radians(),
+                    focal_walk_rel_sqrt_s: focal_prior.map_or(0.0, |c| c.focal_walk_rel_sqrt_s),
                 },
             )
         });
@@ -581,9 +598,6 @@ impl<'a> Navigator<'a> {
         }
     }
 
-    /// Updates the calibration with an accepted fix's inliers and moves the
-    /// fix with it; returns the pose covariance the calibration's remaining
-    /// uncertainty adds (zero without self-calibration).
     /// A frame's evidence on the camera's intrinsics (`None`: no
     /// self-calibration, or too few inliers).
     fn calibration_frame(&self, sol: &Solution) -> Option<FrameCalibration> {
@@ -600,6 +614,34 @@ impl<'a> Navigator<'a> {
         match (&self.calibration, frame) {
             (Some(cal), Some(frame)) => cal.pose_covariance(frame),
             _ => Matrix6::zeros(),
+        }
+    }
+
+    /// The inertial filter in `filter` when it carries the focal length.
+    fn focal_carrier(filter: &mut Carried) -> Option<&mut InsFilter> {
+        match filter {
+            Carried::Ins(f) if f.estimates_focal() => Some(f),
+            _ => None,
+        }
+    }
+
+    /// Moves the camera (and `pose`, solved with it, by `sensitivity`) by
+    /// the focal error the inertial filter has estimated, which restarts
+    /// at zero.
+    fn take_focal(&mut self, f: &mut InsFilter, pose: Option<(&mut CameraPose, &FocalSensitivity)>) {
+        let Some(cal) = &mut self.calibration else { return };
+        let (d, var) = f.take_focal_error();
+        cal.shift_focal(d, var);
+        self.camera = cal.camera();
+        debug!(
+            "t {:.3}: focal length {:+.4}% +- {:.4}% (the inertial filter moved it {:+.4}%)",
+            f.state.t,
+            cal.correction().focal_rel * 100.0,
+            var.sqrt() * 100.0,
+            d * 100.0
+        );
+        if let Some((pose, s)) = pose {
+            *pose = perturb_pose(pose, &(s.0 * d));
         }
     }
 
@@ -641,7 +683,18 @@ impl<'a> Navigator<'a> {
         o.used
     }
 
-    fn calibrate(&mut self, t: f64, sol: &mut Solution, frame: Option<FrameCalibration>) -> Matrix6<f64> {
+    /// Updates the calibration with an accepted fix's inliers and moves the
+    /// fix with it; returns the pose covariance the calibration's remaining
+    /// uncertainty adds (zero without self-calibration; without the focal
+    /// length's share where the inertial filter carries it, which then
+    /// takes the frame's evidence).
+    fn calibrate(
+        &mut self,
+        t: f64,
+        sol: &mut Solution,
+        frame: Option<FrameCalibration>,
+        filter: &mut Carried,
+    ) -> Matrix6<f64> {
         let Some(frame) = frame else { return Matrix6::zeros() };
         let Some(cal) = &mut self.calibration else { return Matrix6::zeros() };
         let rms = inlier_rms_px(sol);
@@ -650,6 +703,17 @@ impl<'a> Navigator<'a> {
             "t {t:.3}: calibration evidence: focal {frame_focal:+.5} sigma {frame_sigma:.5} ({} inliers, rms {rms:.2} px)",
             sol.inliers,
         );
+        if let Some(f) = Self::focal_carrier(filter) {
+            let prior_var = f.covariance[(FOCAL, FOCAL)];
+            if let Some((z, var)) = cal.focal_evidence(t, &frame, prior_var) {
+                f.focal_measurement(z, var);
+                let sensitivity = FocalSensitivity(frame.pose_sensitivity.column(0).into_owned());
+                self.take_focal(f, Some((&mut sol.pose, &sensitivity)));
+                debug!("t {t:.3}: calibration: the frame's focal evidence updated the inertial filter");
+            }
+            let cal = self.calibration.as_ref().expect("checked above");
+            return cal.pose_covariance_but_focal(&frame);
+        }
         match cal.update(t, &frame) {
             Some(step) => {
                 sol.pose = perturb_pose(&sol.pose, &(frame.pose_sensitivity * step.relative));
@@ -748,6 +812,7 @@ impl<'a> Navigator<'a> {
         mut f: InsFilter,
         sol: &Solution,
         calibration_cov: Matrix6<f64>,
+        focal: &FocalSensitivity,
     ) -> Matrix6<f64> {
         let q = self.q_imu_cam;
         match self.params.filter {
@@ -770,9 +835,15 @@ impl<'a> Navigator<'a> {
                 }
             }
             _ => {
-                let (pose, covariance) = f.apparent_pose(&q);
+                // Where the filter carries the focal length, the frame's
+                // pose moves with its error (`focal`).
+                let focal = if f.estimates_focal() { *focal } else { FocalSensitivity::NONE };
+                let (pose, covariance) = f.apparent_pose_with(&q, &focal);
                 if let Some(r) = self.refine_inliers(sol, Some(PosePrior { pose, covariance })) {
-                    f.condition_on_pose(&q, &r.pose, &r.covariance);
+                    f.condition_on_pose_with(&q, &r.pose, &r.covariance, &focal);
+                }
+                if f.estimates_focal() {
+                    self.take_focal(&mut f, None);
                 }
             }
         }
@@ -875,10 +946,13 @@ impl<'a> Navigator<'a> {
                 rejected = rejection;
                 let accepted = rejection.is_none();
                 if accepted {
-                    let calibration_cov = self.calibrate(t, &mut sol, frame);
+                    let focal = frame.as_ref().map_or(FocalSensitivity::NONE, |fr| {
+                        FocalSensitivity(fr.pose_sensitivity.column(0).into_owned())
+                    });
+                    let calibration_cov = self.calibrate(t, &mut sol, frame, &mut pred.filter);
                     self.last_fix = Some((t, sol.pose));
                     let ecef = match pred.filter {
-                        Carried::Ins(f) => self.accept_ins(t, f, &sol, calibration_cov),
+                        Carried::Ins(f) => self.accept_ins(t, f, &sol, calibration_cov, &focal),
                         Carried::Attitude(attitude) => {
                             self.accept_fix(t, &pred.guess, &attitude, &sol) + calibration_cov
                         }
@@ -1835,6 +1909,7 @@ mod tests {
             gyro_bias_rad_s: 1e-5,
             accel_bias_m_s2: 0.01,
             time_offset_s: 0.0,
+            focal_rel: 0.0,
         };
         let errors = InsErrors {
             gyro_arw_rad_sqrt_s: 1e-5,
@@ -1845,6 +1920,7 @@ mod tests {
             map_sigma_m: 0.0,
             map_tau_s: 10.0,
             map_att_sigma_rad: 0.0,
+            focal_walk_rel_sqrt_s: 0.0,
         };
         // Within +-300 m of the nadir point: +-38 px of a 640 x 480 image.
         let points = [(-250.0, -200.0), (240.0, -180.0), (0.0, 260.0), (-120.0, 90.0), (200.0, 150.0)]

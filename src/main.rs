@@ -106,7 +106,7 @@ struct BuildArgs {
     min_template_size: u32,
     /// Landmark spacing: one cell of this many template pixels gets
     /// --per-cell landmarks (default: the level's template size; with
-    /// --camera, what puts ~120 cells in the camera's view, 0.5-2 sizes).
+    /// --camera, what puts at least ~120 cells in the camera's view, 0.5-1 size).
     #[arg(long)]
     spacing: Option<u32>,
     #[arg(long, default_value_t = 1)]

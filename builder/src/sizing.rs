@@ -115,12 +115,18 @@ impl Mission {
         (self.max_off_nadir_deg + half_diag).min(MAX_VIEW_DEG)
     }
 
-    /// Cell side (share of a template footprint) that puts
+    /// Cell side (share of a template footprint) that puts at least
     /// [`CELLS_IN_VIEW`] selection cells in the image where a level's
-    /// templates span `span_px` pixels, between 0.5 and 2.
+    /// templates span `span_px` pixels: half a footprint to one. Never
+    /// coarser than the default database's one footprint: a large image
+    /// would get by with fewer, but the landmarks beyond the 60 it needs
+    /// buy accuracy (on the realistic oblique balloon, cells of 1.8
+    /// footprints navigated to 61 m, the default's one footprint to 32 m:
+    /// more relief in view for the self-calibration, more map errors to
+    /// average).
     pub fn spacing_share(&self, span_px: f64) -> f64 {
         let footprints = (self.width_px as f64 / span_px) * (self.height_px as f64 / span_px);
-        (footprints / CELLS_IN_VIEW).sqrt().clamp(0.5, 2.0)
+        (footprints / CELLS_IN_VIEW).sqrt().clamp(0.5, 1.0)
     }
 
     /// The camera's ground resolutions over the mission: from straight down
@@ -358,19 +364,27 @@ mod tests {
         // 200x150 at 45 px per footprint: 14.8 footprints, cells of half one (the floor).
         let widest = TARGET_SPAN_PX * 2f64.sqrt();
         assert_eq!(m.spacing_share(widest), 0.5);
-        // 1024x768: 388 footprints -> 120 cells of 1.8 footprints.
+        // 1024x768: 384 footprints would give 120 cells of 1.8 footprints;
+        // one footprint, as the default database, is the coarsest.
         let big = Mission { width_px: 1024, height_px: 768, ..m };
         let share = big.spacing_share(widest);
         let cells = (1024.0 / widest) * (768.0 / widest) / (share * share);
-        assert!((cells - CELLS_IN_VIEW).abs() < 0.5 && share > 1.7 && share < 1.9, "{share} {cells}");
+        assert!(share == 1.0 && (cells - 384.0).abs() < 0.5, "{share} {cells}");
+        // 320x240: 37.5 footprints -> 120 cells of 0.56 footprints.
+        let mid = Mission { width_px: 320, height_px: 240, ..m };
+        let share = mid.spacing_share(widest);
+        let cells = (320.0 / widest) * (240.0 / widest) / (share * share);
+        assert!((cells - CELLS_IN_VIEW).abs() < 0.5 && share > 0.5 && share < 0.6, "{share} {cells}");
         // Per level: the 30 m ortho cannot serve the 200x150 camera's 10 m/px
         // (its finest level spans 48 px there), the others span 45 px at most.
         let r = m.gsd_range();
         let l = ladder(30.0, 12, 32, &r, None);
         let s = spacing_shares(&l, &r, Some(&m));
         assert!(s.iter().all(|&x| x == 0.5), "{s:?}");
+        let sm = spacing_shares(&l, &r, Some(&mid));
+        assert!(sm[0] < sm[1] && (sm[1] - share).abs() < 1e-12, "{sm:?}");
         let sb = spacing_shares(&l, &r, Some(&big));
-        assert!(sb[0] < sb[1] && (sb[1] - share).abs() < 1e-12, "{sb:?}");
+        assert!(sb.iter().all(|&x| x == 1.0), "{sb:?}");
         // Without a mission: one footprint, half one where the ortho is too coarse.
         let env = GsdRange::of_envelope(&DEFAULT_ENVELOPE);
         let l = ladder(30.0, 12, 32, &env, None);

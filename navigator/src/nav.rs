@@ -1063,7 +1063,7 @@ impl<'a> Navigator<'a> {
         let ps = r.transpose() * cov.fixed_view::<3, 3>(3, 3) * r;
         let v = r.transpose() * self.velocity;
         debug!(
-            "t {t:.3}: attitude sigma e/n/u {:.4} {:.4} {:.4} deg, position {:.1} {:.1} {:.1} m, velocity e/n/u {:.1} {:.1} {:.1} m/s, gyro bias {:.2} {:.2} {:.2} deg/h",
+            "t {t:.3}: attitude sigma e/n/u {:.4} {:.4} {:.4} deg, position {:.1} {:.1} {:.1} m, velocity e/n/u {:.1} {:.1} {:.1} m/s (sigma {:.2}), gyro bias {:.2} {:.2} {:.2} deg/h",
             p[(0, 0)].sqrt().to_degrees(),
             p[(1, 1)].sqrt().to_degrees(),
             p[(2, 2)].sqrt().to_degrees(),
@@ -1073,6 +1073,7 @@ impl<'a> Navigator<'a> {
             v.x,
             v.y,
             v.z,
+            self.velocity_sigma.unwrap_or(f64::NAN),
             bias.x.to_degrees() * 3600.0,
             bias.y.to_degrees() * 3600.0,
             bias.z.to_degrees() * 3600.0,

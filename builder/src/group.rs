@@ -90,6 +90,8 @@ fn level_plans(
     let offset = ((base_gsd / native).log2() + 1e-9).floor().max(0.0) as usize;
     let top = offset + specs.iter().map(|s| s.gsd_step as usize).max().unwrap_or(0);
     let shares = sizing::spacing_shares(specs, &opts.gsd_range(), opts.mission.as_ref());
+    let fills =
+        sizing::fill_windows(specs, &opts.gsd_range(), opts.mission.as_ref(), opts.fill_share() as f64);
     let plans_for = |p: usize| -> Vec<LevelPlan> {
         let Some(step) = p.checked_sub(offset) else { return Vec::new() };
         let scale = 2f64.powi(p as i32);
@@ -114,9 +116,9 @@ fn level_plans(
                         cell_h: (sp / px_h).round().max(2.0) as usize,
                         per_cell: opts.per_cell,
                         fill: (opts.fill_share() > 0.0).then_some(Fill {
-                            share: opts.fill_share(),
-                            window_w: sizing::VIEW_CELLS.0,
-                            window_h: sizing::VIEW_CELLS.1,
+                            share: fills[index].1 as f32,
+                            window_w: fills[index].0 .0,
+                            window_h: fills[index].0 .1,
                             max_boost: FILL_MAX_BOOST,
                         }),
                         min_shi_tomasi: opts.min_shi_tomasi,

@@ -233,17 +233,57 @@ pub fn ladder(
 /// needs ([`Envelope::spacing_share`]: one footprint, more for small
 /// footprints that only large images see).
 pub fn spacing_shares(levels: &[LevelSpec], range: &GsdRange, mission: Option<&Mission>) -> Vec<f64> {
-    let widest = TARGET_SPAN_PX * std::f64::consts::SQRT_2;
     levels
         .iter()
-        .enumerate()
-        .map(|(k, l)| {
-            let span = if k == 0 { (l.footprint_m() / range.finest_m).max(widest) } else { widest };
-            match mission {
-                Some(m) => m.spacing_share(span),
-                None if span > MAX_SPAN_PX * 1.001 => 0.5,
-                None => DEFAULT_ENVELOPE.spacing_share(l.footprint_m()),
+        .zip(widest_spans(levels, range))
+        .map(|(l, span)| match mission {
+            Some(m) => m.spacing_share(span),
+            None if span > MAX_SPAN_PX * 1.001 => 0.5,
+            None => DEFAULT_ENVELOPE.spacing_share(l.footprint_m()),
+        })
+        .collect()
+}
+
+/// Where each level's templates span their widest in an image (px): see
+/// [`spacing_shares`].
+fn widest_spans(levels: &[LevelSpec], range: &GsdRange) -> Vec<f64> {
+    let widest = TARGET_SPAN_PX * std::f64::consts::SQRT_2;
+    let finest = |k: usize, l: &LevelSpec| {
+        if k == 0 {
+            (l.footprint_m() / range.finest_m).max(widest)
+        } else {
+            widest
+        }
+    };
+    levels.iter().enumerate().map(|(k, l)| finest(k, l)).collect()
+}
+
+/// The density fill's window (cells across, down) and the share of its
+/// cells it aims to give a landmark, per level: [`VIEW_CELLS`] and `share`
+/// where a camera sees about [`CELLS_IN_VIEW`] cells; where a mission's
+/// camera sees more (a large image, whose cells are capped at one
+/// footprint), the window is its view and the share what gives as many
+/// landmarks as `share` of [`CELLS_IN_VIEW`] would, so a view over a lake
+/// still holds what it needs without the shore's cells filling up to the
+/// quota's cap.
+pub fn fill_windows(
+    levels: &[LevelSpec],
+    range: &GsdRange,
+    mission: Option<&Mission>,
+    share: f64,
+) -> Vec<((usize, usize), f64)> {
+    let Some(m) = mission else { return vec![(VIEW_CELLS, share); levels.len()] };
+    widest_spans(levels, range)
+        .into_iter()
+        .map(|span| {
+            let cell = span * m.spacing_share(span);
+            let (cols, rows) = (m.width_px as f64 / cell, m.height_px as f64 / cell);
+            if cols * rows <= CELLS_IN_VIEW {
+                return (VIEW_CELLS, share);
             }
+            let window =
+                ((cols.round() as usize).max(VIEW_CELLS.0), (rows.round() as usize).max(VIEW_CELLS.1));
+            (window, share * CELLS_IN_VIEW / (cols * rows))
         })
         .collect()
 }
@@ -385,6 +425,18 @@ mod tests {
         assert!(sm[0] < sm[1] && (sm[1] - share).abs() < 1e-12, "{sm:?}");
         let sb = spacing_shares(&l, &r, Some(&big));
         assert!(sb.iter().all(|&x| x == 1.0), "{sb:?}");
+        // The fill: the small and the mid cameras see about 120 cells or
+        // fewer: 13 x 9 and the share asked for; the large one sees 22.6 x
+        // 17 cells, and aims at as many landmarks as 0.7 of 120.
+        for cam in [&m, &mid] {
+            let f = fill_windows(&l, &r, Some(cam), 0.7);
+            assert!(f.iter().all(|&(w, s)| w == VIEW_CELLS && s == 0.7), "{f:?}");
+        }
+        let f = fill_windows(&l, &r, Some(&big), 0.7);
+        for &((cols, rows), share) in &f[1..] {
+            assert_eq!((cols, rows), (23, 17));
+            assert!((share * 384.0 - 0.7 * CELLS_IN_VIEW).abs() < 1e-9, "{share}");
+        }
         // Without a mission: one footprint, half one where the ortho is too coarse.
         let env = GsdRange::of_envelope(&DEFAULT_ENVELOPE);
         let l = ladder(30.0, 12, 32, &env, None);

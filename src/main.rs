@@ -113,7 +113,8 @@ struct BuildArgs {
     per_cell: usize,
     /// Density fill: where fewer than this share of the ~120 cells a camera
     /// sees around a cell kept a landmark (water, bare ground), textured cells
-    /// keep up to 4x --per-cell; 0: off (default: 0.7 with --camera, else off).
+    /// keep up to 4x --per-cell (a --camera that sees more cells: its view,
+    /// and as many landmarks); 0: off (default: 0.7 with --camera, else off).
     #[arg(long)]
     fill_share: Option<f32>,
     /// Number of levels (template footprint doubles per level); default: as

@@ -117,6 +117,27 @@ fn navigates_a_simulated_flight_to_metres() {
     println!("mean NEES {nees:.2}, consistent {band:?}");
     assert!(nees.is_finite() && nees > 0.0 && band[0].as_f64().unwrap() < 3.0);
 
+    // With the focal length carried by the inertial filter, the same flight
+    // navigates as well, and every fix is still accounted for in the
+    // self-calibration (its evidence then goes through the filter).
+    let carried = s.root().join("inertial-focal.csv");
+    let o = navigate(&s, &carried, &["--inertial-focal"]);
+    assert!(o.status.success(), "navigate failed: {}", stderr(&o));
+    let nav_report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let cal = &nav_report["calibration"];
+    let counted: u64 =
+        ["frames_used", "frames_weak", "frames_refused"].iter().map(|k| cal[k].as_u64().unwrap()).sum();
+    assert_eq!(counted, nav_report["fixes"].as_u64().unwrap(), "{nav_report}");
+    let focal_sigma = cal["focal_sigma_rel"].as_f64().unwrap();
+    assert!(focal_sigma > 0.0 && focal_sigma < 0.0051, "{cal}");
+    let run = evaluate_flight(&s.flight, &carried, &s.root().join("inertial-focal.json"));
+    let (share, mean) = (
+        run["runs"][0]["status"]["share_fix"].as_f64().unwrap(),
+        run["runs"][0]["fix_errors"]["pos_m"]["mean"].as_f64().unwrap(),
+    );
+    println!("--inertial-focal: fix share {share:.2}, mean 3D error {mean:.2} m");
+    assert!(share >= 0.9 && mean < 10.0, "{share} {mean}");
+
     // At 2 images per second only every other frame is processed while fixes
     // are accepted.
     // With --matches-dir, one picture per processed frame, named after its image.

@@ -430,6 +430,48 @@ mod tests {
     }
 
     #[test]
+    fn focal_evidence_carried_elsewhere_is_the_update_and_passes_the_same_gates() {
+        // A filter that carries the focal length (the inertial one) takes
+        // each frame's evidence as a scalar measurement and hands its
+        // estimate back with `shift_focal`: the same estimate and variance
+        // as `update`, frame after frame, with correlated frames weighed
+        // alike; and the same frames refused or too weak.
+        let p = CalibrationParams { correlation_s: 1.5, ..Default::default() };
+        let camera = CameraModel::from_fov(1024, 768, 30.0);
+        let (mut own, mut carried) = (CalibrationFilter::new(camera, p), CalibrationFilter::new(camera, p));
+        let mut carrier_var = p.focal_sigma_rel.powi(2);
+        let info = Matrix4::from_diagonal(&Vector4::new(1.0 / 0.001f64.powi(2), 1.0, 1.0, 1e6));
+        for k in 0..12 {
+            let t = 0.5 * k as f64;
+            let truth = if k == 7 { 0.04 } else { 0.002 };
+            let rel = |f: &CalibrationFilter| (1.0 + truth) / (1.0 + f.correction().focal_rel) - 1.0;
+            let used = own.update(t, &frame(info, Vector4::new(rel(&own), 0.0, 0.0, 0.0))).is_some();
+            let evidence = carried.focal_evidence(
+                t,
+                &frame(info, Vector4::new(rel(&carried), 0.0, 0.0, 0.0)),
+                carrier_var,
+            );
+            assert_eq!(used, evidence.is_some(), "frame {k}");
+            if let Some((z, var)) = evidence {
+                let gain = carrier_var / (carrier_var + var);
+                carrier_var *= 1.0 - gain;
+                carried.shift_focal(gain * z, carrier_var);
+            }
+            let (a, b) = (own.correction().focal_rel, carried.correction().focal_rel);
+            assert!((a - b).abs() < 1e-3 * a.abs().max(1e-3), "frame {k}: {a} {b}");
+            let (pa, pb) = (own.covariance()[(0, 0)], carried.covariance()[(0, 0)]);
+            assert!((pa - pb).abs() < 1e-2 * pa, "frame {k}: {pa} {pb}");
+        }
+        assert_eq!((own.updates, own.refused), (carried.updates, carried.refused));
+        assert!(own.refused == 1 && (own.correction().focal_rel - 0.002).abs() < 3e-4, "{own:?}");
+        assert!(
+            carried.focal_only()
+                && !CalibrationFilter::new(camera, CalibrationParams { principal_point: true, ..p })
+                    .focal_only()
+        );
+    }
+
+    #[test]
     fn correlated_frames_count_once_per_correlation_time() {
         let info = Matrix4::from_diagonal(&Vector4::new(1.0 / 0.001f64.powi(2), 1.0, 1.0, 1e6));
         let sigma_after = |correlation_s: f64| {

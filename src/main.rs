@@ -340,16 +340,18 @@ struct NavigateArgs {
     accel_bias: f64,
     /// Map offset of the inertial filter: how far the database's errors
     /// shift the fixes from the same landmarks (m, 1 sigma per axis; 0: not
-    /// modelled) ...
-    #[arg(long, default_value_t = 40.0)]
-    map_sigma: f64,
+    /// modelled; default: 4/3 of the inliers' ground sample distance, 40 m
+    /// for a 30 m ortho) ...
+    #[arg(long)]
+    map_sigma: Option<f64>,
     /// ... and how long that shift stays alike (s).
     #[arg(long, default_value_t = 10.0)]
     map_tau: f64,
     /// ... and the rotation they give the pose the images see (deg, 1 sigma
-    /// per axis; 0: not modelled): a narrow view trades a tilt for a shift.
-    #[arg(long, default_value_t = 0.1)]
-    map_att_sigma: f64,
+    /// per axis; 0: not modelled; default: 0.1 per 30 m of the inliers'
+    /// ground sample distance): a narrow view trades a tilt for a shift.
+    #[arg(long)]
+    map_att_sigma: Option<f64>,
     /// Camera-IMU time offset the inertial filter estimates: its prior
     /// (ms, 1 sigma; 0: the stamps are trusted).
     #[arg(long, default_value_t = 10.0)]

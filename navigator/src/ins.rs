@@ -604,6 +604,38 @@ impl InsFilter {
         (d, self.covariance[(FOCAL, FOCAL)])
     }
 
+    /// The map offset's 1-sigmas (m per axis, rad per axis).
+    pub fn map_sigmas(&self) -> (f64, f64) {
+        (self.errors.map_sigma_m, self.errors.map_att_sigma_rad)
+    }
+
+    /// Resizes the map offset to new 1-sigmas: its process noise from now
+    /// on and, with `covariance`, its covariance by the same ratio
+    /// (correlations kept; a part that was not modelled starts uncorrelated
+    /// at its sigma, one set to 0 is dropped). The estimate is kept: it is
+    /// evidence.
+    pub fn resize_map_offset(&mut self, map_sigma_m: f64, map_att_sigma_rad: f64, covariance: bool) {
+        let parts = [
+            (MAP, self.errors.map_sigma_m, map_sigma_m),
+            (MAP_ATT, self.errors.map_att_sigma_rad, map_att_sigma_rad),
+        ];
+        for (at, old, new) in parts.into_iter().filter(|_| covariance) {
+            if old > 0.0 && new > 0.0 {
+                self.scale_sigmas(at..at + 3, new / old);
+            } else if old != new {
+                for i in at..at + 3 {
+                    for j in 0..N {
+                        self.covariance[(i, j)] = 0.0;
+                        self.covariance[(j, i)] = 0.0;
+                    }
+                    self.covariance[(i, i)] = new * new;
+                }
+            }
+        }
+        self.errors.map_sigma_m = map_sigma_m;
+        self.errors.map_att_sigma_rad = map_att_sigma_rad;
+    }
+
     /// Scales the uncertainty of position, velocity and attitude by `factor`
     /// (their standard deviations), keeping every correlation: what the
     /// filter does when an image it could not explain says it may be wrong.
@@ -628,9 +660,16 @@ impl InsFilter {
         self.covariance = scale * self.covariance * scale;
     }
 
-    /// Restarts the pose from an image-only fix (mean and covariance): the
-    /// pose block becomes the fix's, its correlations with the rest are
-    /// dropped, and the velocity's uncertainty is at least `velocity_sigma_m_s`.
+    /// Restarts the pose from an image-only fix (mean and covariance),
+    /// forgetting the pose's prior: what the images see is the true pose
+    /// plus the map offset, carried over the time offset (`z = x_pose +
+    /// H_o x_o`, [`Self::apparent_pose`]'s rows), so the pose becomes
+    /// `z - H_o x_o`: its covariance `R + H_o P_oo H_oᵀ`, its correlation with
+    /// the other states `-H_o P_oo`, and the apparent pose's covariance is
+    /// the fix's. (Dropping those terms would say the fix measured the true
+    /// pose: every later fix's disagreement would go to the map offset, and
+    /// the first fix's error would stay for the offset's correlation time.)
+    /// The velocity's uncertainty is at least `velocity_sigma_m_s`.
     pub fn reset_pose(
         &mut self,
         q_imu_cam: &UnitQuaternion<f64>,
@@ -644,17 +683,24 @@ impl InsFilter {
             * at_stamp.q_ecef_cam
             * q_imu_cam.inverse();
         s.position = Ecef(at_stamp.position.0 - s.map_offset_ecef_m);
-        let p = &mut self.covariance;
+        let mut p = self.covariance;
         for i in 0..6 {
             for j in 0..N {
                 p[(i, j)] = 0.0;
                 p[(j, i)] = 0.0;
             }
         }
-        p.fixed_view_mut::<6, 6>(ATT, ATT).copy_from(fix_cov);
         for i in VEL..VEL + 3 {
             p[(i, i)] = p[(i, i)].max(velocity_sigma_m_s * velocity_sigma_m_s);
         }
+        let mut h_other = self.pose_rows_with(&FocalSensitivity::NONE);
+        h_other.fixed_view_mut::<6, 6>(0, ATT).fill(0.0);
+        let cross = -h_other * p;
+        let pose_block = fix_cov + h_other * p * h_other.transpose();
+        p.fixed_view_mut::<6, N>(ATT, 0).copy_from(&cross);
+        p.fixed_view_mut::<N, 6>(0, ATT).copy_from(&cross.transpose());
+        p.fixed_view_mut::<6, 6>(ATT, ATT).copy_from(&((pose_block + pose_block.transpose()) * 0.5));
+        self.covariance = p;
     }
 }
 
@@ -1242,5 +1288,108 @@ mod tests {
         f.reset_pose(&q, &fix, &(Matrix6::identity() * 100.0), 10.0);
         let (apparent, _) = f.apparent_pose(&q);
         assert!(pose_difference(&apparent, &fix).norm() < 1e-9);
+    }
+
+    #[test]
+    fn a_restart_forgets_the_guess_and_keeps_the_map_offset_out_of_the_next_fix() {
+        // A restart says the images see the fix (the apparent pose's
+        // covariance is the fix's), so the true pose is the fix less the
+        // map offset: its uncertainty holds the offset's, anti-correlated.
+        // A second fix at the same time then averages with the first in the
+        // pose and leaves the map offset alone; before, with the pose's
+        // block set to the fix's alone, it went almost wholly to the offset.
+        let turn = Turn::new();
+        let mut e = errors();
+        e.map_sigma_m = 40.0;
+        e.map_att_sigma_rad = 0.1f64.to_radians();
+        e.map_tau_s = 10.0;
+        let mut i = init();
+        i.time_offset_s = 0.005;
+        let mut f = InsFilter::new(turn.state(0.0), &i, e);
+        let q = UnitQuaternion::identity();
+        let truth = turn.at(0.0);
+        let fix = CameraPose::new(Ecef(truth.p + Vector3::new(300.0, -200.0, 100.0)), truth.q);
+        let mut r = Matrix6::zeros();
+        for k in 0..3 {
+            r[(k, k)] = 1e-10;
+            r[(k + 3, k + 3)] = 4.0;
+        }
+        f.reset_pose(&q, &fix, &r, 0.0);
+        let (apparent, apparent_cov) = f.apparent_pose(&q);
+        assert!(pose_difference(&apparent, &fix).norm() < 1e-9);
+        for a in 0..6 {
+            for b in 0..6 {
+                assert!((apparent_cov[(a, b)] - r[(a, b)]).abs() < 1e-9 * (1.0 + r[(a, b)].abs()), "{a} {b}");
+            }
+        }
+        let p = &f.covariance;
+        for k in 0..3 {
+            // Position: the fix's 4 m^2, the map offset's 1600 and the time
+            // offset's (200 m/s x 5 ms)^2.
+            assert!(p[(POS + k, POS + k)] > 4.0 + 1600.0 - 1e-6, "{}", p[(POS + k, POS + k)]);
+            assert!((p[(POS + k, MAP + k)] + p[(MAP + k, MAP + k)]).abs() < 1e-9);
+            assert!((p[(ATT + k, MAP_ATT + k)] + p[(MAP_ATT + k, MAP_ATT + k)]).abs() < 1e-15);
+        }
+        // (The focal length's error is not modelled: its row is zero.)
+        assert!(p.fixed_view::<22, 22>(0, 0).into_owned().cholesky().is_some(), "positive definite");
+        let (pose0, _) = f.pose(&q);
+        let map0 = f.state.map_offset_ecef_m;
+        let second = CameraPose::new(Ecef(fix.position.0 + Vector3::new(10.0, 0.0, 0.0)), fix.q_ecef_cam);
+        f.update_with_pose(&q, &second, &r).expect("regular");
+        let (pose1, _) = f.pose(&q);
+        let moved = pose1.position.0 - pose0.position.0;
+        let map_moved = f.state.map_offset_ecef_m - map0;
+        assert!((moved - Vector3::new(5.0, 0.0, 0.0)).norm() < 0.05, "pose moved {moved}");
+        assert!(map_moved.norm() < 0.05, "map offset moved {map_moved}");
+    }
+
+    #[test]
+    fn the_map_offset_resizes_its_prior_or_only_its_process_noise() {
+        let turn = Turn::new();
+        let mut e = errors();
+        e.map_sigma_m = 40.0;
+        e.map_att_sigma_rad = 0.1f64.to_radians();
+        e.map_tau_s = 10.0;
+        let q = UnitQuaternion::identity();
+        let mut f = InsFilter::new(turn.state(0.0), &init(), e);
+        // A fix correlates the offset with the pose.
+        let fix = CameraPose::new(Ecef(turn.at(0.0).p + Vector3::new(30.0, 0.0, 0.0)), turn.at(0.0).q);
+        f.update_with_pose(&q, &fix, &(Matrix6::identity() * 4.0)).expect("regular");
+        let before = f.covariance;
+        assert!(before[(POS, MAP)].abs() > 1.0);
+        // The prior: rows and columns of the offset scaled by the ratio.
+        let mut g = f.clone();
+        g.resize_map_offset(20.0, 0.05f64.to_radians(), true);
+        assert_eq!(g.map_sigmas(), (20.0, 0.05f64.to_radians()));
+        for (i, j) in [(MAP, MAP), (MAP + 1, MAP + 2), (MAP_ATT, MAP_ATT)] {
+            assert!(
+                (g.covariance[(i, j)] - 0.25 * before[(i, j)]).abs()
+                    <= 1e-12 * before[(i, j)].abs().max(1e-30)
+            );
+        }
+        assert!(
+            (g.covariance[(POS, MAP)] - 0.5 * before[(POS, MAP)]).abs() <= 1e-12 * before[(POS, MAP)].abs()
+        );
+        assert_eq!(g.covariance[(POS, POS)], before[(POS, POS)]);
+        assert_eq!(g.state.map_offset_ecef_m, f.state.map_offset_ecef_m);
+        // The process noise only: the covariance stays, then settles at the
+        // new sigma over a few correlation times.
+        let mut h = f.clone();
+        h.resize_map_offset(20.0, 0.05f64.to_radians(), false);
+        assert_eq!(h.covariance, before);
+        let (imu, _, _) = turn.imu(100.0, 61.0, None);
+        h.propagate(60.0, &imu);
+        let v = h.covariance[(MAP, MAP)];
+        assert!((v - 400.0).abs() < 0.02 * 400.0, "{v}");
+        let a = h.covariance[(MAP_ATT, MAP_ATT)];
+        let want = 0.05f64.to_radians().powi(2);
+        assert!((a - want).abs() < 0.02 * want, "{a} against {want}");
+        // A part that was not modelled starts at its sigma, uncorrelated.
+        let mut k = InsFilter::new(turn.state(0.0), &init(), errors());
+        k.update_with_pose(&q, &fix, &(Matrix6::identity() * 4.0)).expect("regular");
+        k.resize_map_offset(20.0, 0.0, true);
+        assert_eq!(k.covariance[(MAP, MAP)], 400.0);
+        assert_eq!(k.covariance[(POS, MAP)], 0.0);
+        assert_eq!(k.covariance[(MAP_ATT, MAP_ATT)], 0.0);
     }
 }

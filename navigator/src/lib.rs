@@ -123,10 +123,10 @@ impl RunOptions {
         if !non_negative(p.time_offset_sigma_s) {
             return bad("--time-offset-sigma", "must be milliseconds >= 0");
         }
-        if !non_negative(p.map_sigma_m) {
+        if !p.map_sigma_m.is_none_or(non_negative) {
             return bad("--map-sigma", "must be metres >= 0");
         }
-        if !(non_negative(p.map_att_sigma_deg) && p.map_att_sigma_deg <= 10.0) {
+        if !p.map_att_sigma_deg.is_none_or(|d| non_negative(d) && d <= 10.0) {
             return bad("--map-att-sigma", "must be degrees within 0..10");
         }
         if let Some(c) = &p.calibration {

@@ -114,13 +114,16 @@ pub struct NavParams {
     pub free_accel_m_s2_sqrt_s: f64,
     /// The map offset of the inertial filter ([`crate::ins`]): the 1-sigma
     /// shift (m per axis) the database's errors give the fixes from the
-    /// landmarks in view, and its correlation time (s). 0: not modelled.
-    pub map_sigma_m: f64,
+    /// landmarks in view (0: not modelled; `None`: [`MAP_SIGMA_PER_GSD`]
+    /// of the inliers' ground sample distance, see [`map_sigmas_for_gsd`]),
+    /// and its correlation time (s).
+    pub map_sigma_m: Option<f64>,
     pub map_tau_s: f64,
     /// The map offset's attitude part (deg, 1 sigma per axis; 0: not
-    /// modelled): the rotation the database's errors give the pose the
-    /// images see (a narrow view's tilt for its shift).
-    pub map_att_sigma_deg: f64,
+    /// modelled; `None`: [`MAP_ATT_SIGMA_DEG_PER_GSD_M`] per metre of the
+    /// inliers' ground sample distance): the rotation the database's errors
+    /// give the pose the images see (a narrow view's tilt for its shift).
+    pub map_att_sigma_deg: Option<f64>,
     /// Prior 1-sigma of the camera-IMU time offset (s) the inertial filter
     /// estimates (an image stamped `t` exposed at `t + offset`); 0: none.
     pub time_offset_sigma_s: f64,
@@ -190,14 +193,11 @@ impl Default for NavParams {
             accel_vrw_m_s_sqrt_s: 0.0015,
             accel_bias_walk_m_s2_sqrt_s: 1e-4,
             free_accel_m_s2_sqrt_s: 3.0,
-            // Measured on the realistic flights (README): 40 m and 0.1 deg
-            // over 10 s, with the landmark tracks, bridge the 30 km nadir
-            // balloon's 30 s outage (167 -> 69 m of drift after 15 s of
-            // fixes) and leave no flight's NEES above its 95% band; the 30
-            // km nadir fixes wander by +-50 m (their tilt by 0.03-0.1 deg).
-            map_sigma_m: 40.0,
+            // Sized by the landmarks' ground sample distance
+            // ([`map_sigmas_for_gsd`]).
+            map_sigma_m: None,
             map_tau_s: 10.0,
-            map_att_sigma_deg: 0.1,
+            map_att_sigma_deg: None,
             time_offset_sigma_s: 0.01,
             prior_gated_update: true,
             track_update: true,
@@ -351,6 +351,8 @@ pub struct Navigator<'a> {
     /// uncertainty was inflated ([`Self::doubt_unconfirmed_guess`]): the
     /// first fix restarts the pose, as an acquisition's does.
     guess_doubted: bool,
+    /// A fix has sized the map offset's prior ([`map_sigmas_for_gsd`]).
+    map_sized: bool,
 }
 
 /// A frame's prediction: the pose guess and how far it may be off.
@@ -431,6 +433,31 @@ const REFINE_HUBER_PX: f64 = 1.0;
 /// infinite along it.
 const MAX_PEAK_SIGMA_PX: f64 = 5.0;
 
+/// The map offset's default 1-sigma per axis, in the landmarks' ground
+/// sample distance (GSD): where many landmarks agree, a database is off by
+/// about one of its pixels (its ortho's registration, the DEM's errors under
+/// the templates, another sun moving every correlation peak alike), so a
+/// 1 m database is not given a 30 m one's 40 m. Measured on the realistic
+/// flights (README; a 30 m Landsat ortho, another DEM): 40 m (4/3 of 30 m)
+/// over 10 s, with the landmark tracks, bridges the 30 km nadir balloon's
+/// 30 s outage (167 -> 69 m of drift after 15 s of fixes) and leaves no
+/// flight's NEES above its 95% band; the 30 km nadir fixes wander by +-50 m.
+pub const MAP_SIGMA_PER_GSD: f64 = 4.0 / 3.0;
+/// The map offset's attitude part per metre of the landmarks' GSD (deg):
+/// 0.1 deg at 30 m, where the realistic 30 km nadir fixes' tilt wanders by
+/// 0.03-0.1 deg.
+pub const MAP_ATT_SIGMA_DEG_PER_GSD_M: f64 = 0.1 / 30.0;
+
+/// The map offset's 1-sigmas (m, deg per axis) for landmarks of `gsd_m`
+/// (the median of a fix's inliers): `--map-sigma` / `--map-att-sigma` where
+/// given, else [`MAP_SIGMA_PER_GSD`] and [`MAP_ATT_SIGMA_DEG_PER_GSD_M`].
+pub fn map_sigmas_for_gsd(params: &NavParams, gsd_m: f64) -> (f64, f64) {
+    (
+        params.map_sigma_m.unwrap_or(MAP_SIGMA_PER_GSD * gsd_m),
+        params.map_att_sigma_deg.unwrap_or(MAP_ATT_SIGMA_DEG_PER_GSD_M * gsd_m),
+    )
+}
+
 impl<'a> Navigator<'a> {
     pub fn new(
         source: &'a dyn LandmarkSource,
@@ -446,6 +473,9 @@ impl<'a> Navigator<'a> {
         let near = trn_view::visible::terrain_near(source, &levels, &init.position)?;
         let terrain_h_m = near.height_m;
         let (lighting, lit_for_flight) = choose_lighting(&source.suns()?, params.sun.as_ref());
+        // Until a fix says which levels the camera sees: the finest.
+        let finest_gsd_m = source.levels()?.iter().map(|l| l.gsd_m).fold(f64::INFINITY, f64::min);
+        let map_start = map_sigmas_for_gsd(&params, finest_gsd_m);
         // The calibration whose focal length the inertial filter carries.
         let focal_prior = params.calibration.filter(|c| {
             params.filter == FilterMode::Tight
@@ -485,9 +515,9 @@ impl<'a> Navigator<'a> {
                     accel_vrw_m_s_sqrt_s: params.accel_vrw_m_s_sqrt_s,
                     accel_bias_walk_m_s2_sqrt_s: params.accel_bias_walk_m_s2_sqrt_s,
                     free_accel_m_s2_sqrt_s: params.free_accel_m_s2_sqrt_s,
-                    map_sigma_m: params.map_sigma_m,
+                    map_sigma_m: map_start.0,
                     map_tau_s: params.map_tau_s,
-                    map_att_sigma_rad: params.map_att_sigma_deg.to_radians(),
+                    map_att_sigma_rad: map_start.1.to_radians(),
                     focal_walk_rel_sqrt_s: focal_prior.map_or(0.0, |c| c.focal_walk_rel_sqrt_s),
                 },
             )
@@ -530,6 +560,7 @@ impl<'a> Navigator<'a> {
             ins,
             track: None,
             guess_doubted: false,
+            map_sized: false,
         })
     }
 
@@ -805,7 +836,8 @@ impl<'a> Navigator<'a> {
     }
 
     /// Updates the inertial filter with an accepted frame; returns the
-    /// covariance of the pose it then estimates.
+    /// covariance of the pose it then estimates. The map offset is first
+    /// sized for the frame's landmarks ([`map_sigmas_for_gsd`]).
     fn accept_ins(
         &mut self,
         t: f64,
@@ -815,6 +847,19 @@ impl<'a> Navigator<'a> {
         focal: &FocalSensitivity,
     ) -> Matrix6<f64> {
         let q = self.q_imu_cam;
+        if let Some(gsd) = sol.median_gsd_m {
+            let (m, deg) = map_sigmas_for_gsd(&self.params, gsd);
+            let (was_m, was_rad) = f.map_sigmas();
+            if (m - was_m).abs() > 1e-6 * m.max(1.0) || (deg.to_radians() - was_rad).abs() > 1e-12 {
+                // The first fix sizes the offset's prior; later ones its
+                // process noise only (rescaling a posterior would undo what
+                // the fixes said of the pose the images see).
+                let prior = !self.map_sized;
+                debug!("t {t:.3}: landmarks of {gsd:.1} m: the map offset is {m:.1} m, {deg:.3} deg (prior: {prior})");
+                f.resize_map_offset(m, deg.to_radians(), prior);
+            }
+            self.map_sized = true;
+        }
         match self.params.filter {
             // An acquisition's pose is kilometres from the prediction: as an
             // update, the filter's correlations would turn the jump into
@@ -1308,6 +1353,7 @@ impl<'a> Navigator<'a> {
                     predicted: p.center_px,
                     // At full resolution; an edge's (infinite along it) capped.
                     sigma_px: (m.sigma_px * scale).min(MAX_PEAK_SIGMA_PX),
+                    gsd_m: p.gsd_m,
                 })
             })
             .collect();
@@ -1381,6 +1427,7 @@ impl<'a> Navigator<'a> {
         let mut records = Vec::with_capacity(n);
         let mut inliers = 0;
         let mut h_sum = 0.0;
+        let mut gsds = Vec::new();
         for m in matches {
             let at = trn_geodesy::Ecef(m.point_ecef);
             let pred = refined.pose.project(&self.camera, &at);
@@ -1389,6 +1436,9 @@ impl<'a> Navigator<'a> {
             if inl {
                 inliers += 1;
                 h_sum += at.to_geodetic().h_m;
+                if m.gsd_m > 0.0 {
+                    gsds.push(m.gsd_m);
+                }
             }
             let q = pred.unwrap_or(m.predicted);
             records.push(MatchRecord {
@@ -1414,6 +1464,7 @@ impl<'a> Navigator<'a> {
             covariance: refined.covariance,
             prior_loosened,
             mean_landmark_h: (inliers > 0).then(|| h_sum / inliers as f64),
+            median_gsd_m: median(&mut gsds),
             acquisition: false,
         })
     }
@@ -1552,6 +1603,8 @@ struct Match {
     predicted: Pixel,
     /// The correlation peak's sigma (full-resolution pixels, capped).
     sigma_px: f64,
+    /// The template's ground sample distance (m; 0 when not known).
+    gsd_m: f64,
 }
 
 /// Why a level or a frame gave no pose: too few matches, or no consensus
@@ -1580,6 +1633,8 @@ struct Solution {
     /// uncertainty of a guess kilometres off).
     acquisition: bool,
     mean_landmark_h: Option<f64>,
+    /// The inliers' median ground sample distance (m).
+    median_gsd_m: Option<f64>,
 }
 
 impl Solution {
@@ -1727,6 +1782,16 @@ struct Gated {
     sigma_px: f64,
 }
 
+/// The median of `v` (sorted in place); `None` when empty.
+fn median(v: &mut [f64]) -> Option<f64> {
+    if v.is_empty() {
+        return None;
+    }
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    Some(if n % 2 == 1 { v[n / 2] } else { 0.5 * (v[n / 2 - 1] + v[n / 2]) })
+}
+
 /// Every match of a solution (inliers or not) as found.
 fn matches_of(sol: &Solution) -> Vec<Match> {
     sol.records
@@ -1738,6 +1803,7 @@ fn matches_of(sol: &Solution) -> Vec<Match> {
                 landmark: r.landmark,
                 predicted: Pixel::new(r.pred_u, r.pred_v),
                 sigma_px: r.sigma_px.unwrap_or(0.0),
+                gsd_m: 0.0,
             })
         })
         .collect()
@@ -2004,6 +2070,7 @@ mod tests {
             prior_loosened: false,
             acquisition: false,
             mean_landmark_h: None,
+            median_gsd_m: None,
         }
     }
 
@@ -2227,5 +2294,23 @@ mod tests {
         assert!(velocity_fit(&short).is_none());
         let two: std::collections::VecDeque<_> = [exact[0], exact[12]].into_iter().collect();
         assert!(velocity_fit(&two).is_none());
+    }
+
+    #[test]
+    fn the_map_offset_is_sized_by_the_landmarks_ground_sample_distance() {
+        // The realistic flights' 30 m landmarks keep the figures measured on
+        // them; a finer database is given less; options win.
+        let mut p = NavParams::default();
+        let (m, deg) = map_sigmas_for_gsd(&p, 30.0);
+        assert!((m - 40.0).abs() < 1e-9 && (deg - 0.1).abs() < 1e-12, "{m} {deg}");
+        let (m, deg) = map_sigmas_for_gsd(&p, 1.0);
+        assert!(m < 1.5 && deg < 0.004, "{m} {deg}");
+        p.map_sigma_m = Some(20.0);
+        p.map_att_sigma_deg = Some(0.0);
+        assert_eq!(map_sigmas_for_gsd(&p, 30.0), (20.0, 0.0));
+        let mut v = vec![32.0, 16.0, 16.0, 64.0];
+        assert_eq!(median(&mut v), Some(24.0));
+        assert_eq!(median(&mut [8.0, 64.0, 16.0]), Some(16.0));
+        assert_eq!(median(&mut []), None);
     }
 }

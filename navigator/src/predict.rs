@@ -152,6 +152,8 @@ pub struct Predicted {
     /// Level-`level` position of the patch's centre pixel.
     pub patch_center: Pixel,
     pub level: usize,
+    /// The template's ground sample distance (m).
+    pub gsd_m: f64,
 }
 
 impl Predicted {
@@ -333,6 +335,7 @@ pub fn predict(
         patch: ncc::Template { width: side, height: side, data, mask: Some(mask) },
         patch_center: Pixel::new((x0 + half) as f64, (y0 + half) as f64),
         level,
+        gsd_m: t.gsd_m,
     })
 }
 

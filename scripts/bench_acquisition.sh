@@ -8,19 +8,24 @@
 # (--init-sigma-m DIST, and --init-sigma-deg of the guess's attitude error
 # when DEG is given). Prints fix share, first fixed frame, errors and median
 # ms; results in target/realistic/acquisition/results.md.
-# Usage: scripts/bench_acquisition.sh [DIST_M[:DEG] ...]
+# Usage: scripts/bench_acquisition.sh [DIST_M[:DEG] ...]   (the guess moved
+#   DIST_M toward AZ, below)
 #   (default: 3000 6000 10000 10000:10)
-# Environment: OUT=target/realistic; TRN=path of a trn binary (default: built)
+# Environment: OUT=target/realistic; TRN=path of a trn binary (default: built);
+#   FLIGHT=another realistic flight's name (e.g. sierra-low-pass; its results in
+#   OUT/acquisition-FLIGHT/results.md); AZ=the direction the guess is moved
+#   toward (deg from north, default 45: north-east)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:-target/realistic}
-src="$OUT/flights/sierra-balloon-nadir-lost"
-db="$OUT/db/sierra.gpkg"
+name=${FLIGHT:-sierra-balloon-nadir-lost}
+src="$OUT/flights/$name"
+db="$OUT/db/${name%%-*}.gpkg"
 [ -f "$src/frames.csv" ] && [ -f "$db" ] || { echo "run scripts/bench_realistic.sh first ($src, $db)" >&2; exit 1; }
 if [ -z "${TRN:-}" ]; then cargo build --release --quiet --bin trn; fi
 trn=${TRN:-target/release/trn}
 cases=("$@"); [ ${#cases[@]} -eq 0 ] && cases=(3000 6000 10000 10000:10)
-work="$OUT/acquisition"
+work="$OUT/acquisition${FLIGHT:+-$FLIGHT}${AZ:+-az$AZ}"
 mkdir -p "$work"
 rows=()
 for c in "${cases[@]}"; do
@@ -31,17 +36,17 @@ for c in "${cases[@]}"; do
   for x in "$src"/*; do ln -s "$(readlink -f "$x")" "$f/"; done
   rm "$f/init.json"
   # The guess's attitude error (deg) against the first true attitude.
-  att=$(python3 - "$src" "$f" "$d" "$deg" <<'PY'
+  att=$(python3 - "$src" "$f" "$d" "$deg" "${AZ:-45}" <<'PY'
 import json, math, sys
-src, dst, d, deg = sys.argv[1], sys.argv[2], float(sys.argv[3]), float(sys.argv[4])
+src, dst, d, deg, az = sys.argv[1], sys.argv[2], float(sys.argv[3]), float(sys.argv[4]), float(sys.argv[5])
 first = open(f"{src}/truth.csv").read().splitlines()[1].split(",")
 lat, lon = float(first[1]), float(first[2])
 q_true = [float(x) for x in first[4:8]]
 init = json.load(open(f"{src}/init.json"))
-# d metres toward the north-east on a local sphere (accurate to metres here).
+# d metres toward azimuth az on a local sphere (accurate to metres here).
 r = 6371000.0
-init["lat"] = lat + math.degrees(d * math.cos(math.radians(45)) / r)
-init["lon"] = lon + math.degrees(d * math.sin(math.radians(45)) / (r * math.cos(math.radians(lat))))
+init["lat"] = lat + math.degrees(d * math.cos(math.radians(az)) / r)
+init["lon"] = lon + math.degrees(d * math.sin(math.radians(az)) / (r * math.cos(math.radians(lat))))
 def mul(a, b):
     w1, x1, y1, z1 = a; w2, x2, y2, z2 = b
     return [w1*w2 - x1*x2 - y1*y2 - z1*z2, w1*x2 + x1*w2 + y1*z2 - z1*y2,

@@ -419,6 +419,15 @@ struct Search {
 /// A first search radius above this share of the focal length is an
 /// acquisition (see `solve`).
 const ACQUISITION_RADIUS_F: f64 = 0.5;
+/// Shortest image side (level pixels) an acquisition searches at. Measured
+/// on the realistic flights (README, acquisition): a 640x480 camera's 80x60
+/// level (two of its coarse templates across, searched over the whole
+/// image) acquired neither the low pass nor the 640x480 rocket 2 km off, its
+/// 160x120 level acquires both; the 200x150 rocket acquires 2 km off on its
+/// 100x75 level, and at full resolution (16 px templates searched over the
+/// whole image) it found aliases up to 491 m off; the 1024x768 balloons
+/// acquire 10 km off on their 128x96 level.
+const MIN_ACQUISITION_SIDE_PX: usize = 72;
 /// Huber threshold (px) of the self-calibration's residuals, as the
 /// full-resolution refinement's.
 const HUBER_PX: f64 = 1.0;
@@ -1230,6 +1239,14 @@ impl<'a> Navigator<'a> {
         }
         // A coarse level needs enough landmarks in view, large enough to correlate.
         while k > 0 && self.usable_landmarks(&fp, guess, k, margin_px) < MIN_COARSE_LANDMARKS {
+            k -= 1;
+        }
+        // An acquisition stands on its coarse level alone: one whose image
+        // is a few templates across leaves them no room to slide.
+        while margin_px > 0.0
+            && k > 0
+            && pyr.levels[k].width.min(pyr.levels[k].height) < MIN_ACQUISITION_SIDE_PX
+        {
             k -= 1;
         }
         let mut pose = *guess;

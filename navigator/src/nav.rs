@@ -475,7 +475,8 @@ impl<'a> Navigator<'a> {
         init: &TimedPose,
         params: NavParams,
     ) -> Result<Self, trn_view::SourceError> {
-        let levels = DbLevel::of(&source.levels()?);
+        let level_infos = source.levels()?;
+        let levels = DbLevel::of(&level_infos);
         if levels.is_empty() {
             return Err(trn_view::SourceError("the landmark database has no templates".into()));
         }
@@ -483,7 +484,7 @@ impl<'a> Navigator<'a> {
         let terrain_h_m = near.height_m;
         let (lighting, lit_for_flight) = choose_lighting(&source.suns()?, params.sun.as_ref());
         // Until a fix says which levels the camera sees: the finest.
-        let finest_gsd_m = source.levels()?.iter().map(|l| l.gsd_m).fold(f64::INFINITY, f64::min);
+        let finest_gsd_m = level_infos.iter().map(|l| l.gsd_m).fold(f64::INFINITY, f64::min);
         let map_start = map_sigmas_for_gsd(&params, finest_gsd_m);
         // The calibration whose focal length the inertial filter carries.
         let focal_prior = params.calibration.filter(|c| {

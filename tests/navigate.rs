@@ -272,6 +272,22 @@ fn realistic_flight(d: &Path, scenario: &str, horizontal_m: f64, duration_s: &st
     (db, flight)
 }
 
+/// Navigates `s` into `poses` with `args`; returns the first fixed frame,
+/// the fix share and the worst accepted fix's error (m; `None` when none).
+fn acquisition(s: &NavFixture, poses: &Path, args: &[&str]) -> (Option<usize>, f64, Option<f64>) {
+    let o = navigate(s, poses, args);
+    assert!(o.status.success(), "navigate failed: {}", stderr(&o));
+    let r = rows(poses);
+    println!("{args:?}: {r:?}");
+    let first = r.iter().position(|x| x.1 == "fix");
+    let report = evaluate(s, poses);
+    let run = &report["runs"][0];
+    let (share, worst) =
+        (run["status"]["share_fix"].as_f64().unwrap(), run["fix_errors"]["pos_m"]["max"].as_f64());
+    println!("{args:?}: first fix at {first:?}; fix share {share:.2}, worst fix {worst:?} m");
+    (first, share, worst)
+}
+
 /// Issue #13's acquisition from 5 km, on real relief and a world that is not
 /// the map: the realistic lost-balloon scenario with its guess 5 km off,
 /// navigated with that uncertainty told (`--init-sigma-m 5000`).
@@ -280,30 +296,13 @@ fn acquires_from_5_km_on_real_relief() {
     let dir = tempfile::tempdir().unwrap();
     let (db, flight) = realistic_flight(dir.path(), "sierra-balloon-nadir-lost", 5000.0, "5");
     let s = NavFixture { dir: tempfile::tempdir().unwrap(), db, flight };
-    let poses = s.root().join("poses.csv");
-    let o = navigate(&s, &poses, &["--init-sigma-m", "5000"]);
-    assert!(o.status.success(), "navigate failed: {}", stderr(&o));
-    let r = rows(&poses);
-    println!("{r:?}");
-    let first = r.iter().position(|x| x.1 == "fix").expect("never acquired");
-    let report = evaluate(&s, &poses);
-    let run = &report["runs"][0];
-    let (share, worst) =
-        (run["status"]["share_fix"].as_f64().unwrap(), run["fix_errors"]["pos_m"]["max"].as_f64().unwrap());
-    println!("acquired at frame {first}; fix share {share:.2}, worst fix {worst:.0} m");
     // Within 10 processed frames, and no fix a navigator should not trust.
-    assert!(first < 10, "first fix at frame {first}");
-    assert!(share >= 0.8 && worst < 250.0, "fix share {share}, worst fix {worst} m");
+    let (first, share, worst) = acquisition(&s, &s.root().join("poses.csv"), &["--init-sigma-m", "5000"]);
+    assert!(first.is_some_and(|f| f < 10), "first fix at frame {first:?}");
+    assert!(share >= 0.8 && worst.is_some_and(|w| w < 250.0), "fix share {share}, worst fix {worst:?} m");
     // Not told (the default 300 m): the inertial filter's velocity doubt
     // widens the search until it acquires.
-    let poses = s.root().join("poses-untold.csv");
-    let o = navigate(&s, &poses, &[]);
-    assert!(o.status.success(), "navigate failed: {}", stderr(&o));
-    let r = rows(&poses);
-    println!("not told: {r:?}");
-    let first = r.iter().position(|x| x.1 == "fix");
-    let worst = evaluate(&s, &poses)["runs"][0]["fix_errors"]["pos_m"]["max"].as_f64();
-    println!("not told: first fix at {first:?}, worst fix {worst:?} m");
+    let (first, _, worst) = acquisition(&s, &s.root().join("poses-untold.csv"), &[]);
     assert!(first.is_some_and(|f| f < 10) && worst.is_some_and(|w| w < 250.0), "{first:?} {worst:?}");
 }
 
@@ -317,18 +316,9 @@ fn a_low_camera_acquires_from_1_5_km() {
     let dir = tempfile::tempdir().unwrap();
     let (db, flight) = realistic_flight(dir.path(), "sierra-rocket-640x480", 1500.0, "3");
     let s = NavFixture { dir: tempfile::tempdir().unwrap(), db, flight };
-    let poses = s.root().join("poses.csv");
-    let o = navigate(&s, &poses, &["--init-sigma-m", "1500"]);
-    assert!(o.status.success(), "navigate failed: {}", stderr(&o));
-    let r = rows(&poses);
-    println!("{r:?}");
-    let first = r.iter().position(|x| x.1 == "fix").expect("never acquired");
-    let run = &evaluate(&s, &poses)["runs"][0];
-    let (share, worst) =
-        (run["status"]["share_fix"].as_f64().unwrap(), run["fix_errors"]["pos_m"]["max"].as_f64().unwrap());
-    println!("acquired at frame {first}; fix share {share:.2}, worst fix {worst:.0} m");
-    assert!(first <= 2, "first fix at frame {first}");
-    assert!(share >= 0.6 && worst < 250.0, "fix share {share}, worst fix {worst} m");
+    let (first, share, worst) = acquisition(&s, &s.root().join("poses.csv"), &["--init-sigma-m", "1500"]);
+    assert!(first.is_some_and(|f| f <= 2), "first fix at frame {first:?}");
+    assert!(share >= 0.6 && worst.is_some_and(|w| w < 250.0), "fix share {share}, worst fix {worst:?} m");
 }
 
 #[test]
@@ -374,6 +364,8 @@ fn bad_inputs_are_named() {
         ("--init-velocity-sigma", "0"),
         ("--accel-bias", "nan"),
         ("--map-sigma", "inf"),
+        ("--map-att-sigma", "11"),
+        ("--map-att-sigma", "nan"),
         ("--map-tau", "0"),
         ("--time-offset-sigma", "nan"),
     ] {

@@ -619,16 +619,15 @@ impl InsFilter {
             (MAP, self.errors.map_sigma_m, map_sigma_m),
             (MAP_ATT, self.errors.map_att_sigma_rad, map_att_sigma_rad),
         ];
-        for (at, old, new) in parts.into_iter().filter(|_| covariance) {
-            if old > 0.0 && new > 0.0 {
-                self.scale_sigmas(at..at + 3, new / old);
-            } else if old != new {
-                for i in at..at + 3 {
-                    for j in 0..N {
-                        self.covariance[(i, j)] = 0.0;
-                        self.covariance[(j, i)] = 0.0;
+        if covariance {
+            for (at, old, new) in parts {
+                if old > 0.0 && new > 0.0 {
+                    self.scale_sigmas(at..at + 3, new / old);
+                } else if old != new {
+                    uncorrelate(&mut self.covariance, at..at + 3);
+                    for i in at..at + 3 {
+                        self.covariance[(i, i)] = new * new;
                     }
-                    self.covariance[(i, i)] = new * new;
                 }
             }
         }
@@ -684,12 +683,7 @@ impl InsFilter {
             * q_imu_cam.inverse();
         s.position = Ecef(at_stamp.position.0 - s.map_offset_ecef_m);
         let mut p = self.covariance;
-        for i in 0..6 {
-            for j in 0..N {
-                p[(i, j)] = 0.0;
-                p[(j, i)] = 0.0;
-            }
-        }
+        uncorrelate(&mut p, ATT..POS + 3);
         for i in VEL..VEL + 3 {
             p[(i, i)] = p[(i, i)].max(velocity_sigma_m_s * velocity_sigma_m_s);
         }
@@ -701,6 +695,14 @@ impl InsFilter {
         p.fixed_view_mut::<N, 6>(0, ATT).copy_from(&cross.transpose());
         p.fixed_view_mut::<6, 6>(ATT, ATT).copy_from(&((pose_block + pose_block.transpose()) * 0.5));
         self.covariance = p;
+    }
+}
+
+/// Zeroes the rows and columns of `range` in `p` (their variances too).
+fn uncorrelate(p: &mut Covariance, range: std::ops::Range<usize>) {
+    for i in range {
+        p.row_mut(i).fill(0.0);
+        p.column_mut(i).fill(0.0);
     }
 }
 
@@ -1290,6 +1292,11 @@ mod tests {
         assert!(pose_difference(&apparent, &fix).norm() < 1e-9);
     }
 
+    /// [`errors`] with the navigator's map offset: 40 m, 0.1 deg, 10 s.
+    fn errors_with_map_offset() -> InsErrors {
+        InsErrors { map_sigma_m: 40.0, map_att_sigma_rad: 0.1f64.to_radians(), map_tau_s: 10.0, ..errors() }
+    }
+
     #[test]
     fn a_restart_forgets_the_guess_and_keeps_the_map_offset_out_of_the_next_fix() {
         // A restart says the images see the fix (the apparent pose's
@@ -1299,13 +1306,9 @@ mod tests {
         // pose and leaves the map offset alone; before, with the pose's
         // block set to the fix's alone, it went almost wholly to the offset.
         let turn = Turn::new();
-        let mut e = errors();
-        e.map_sigma_m = 40.0;
-        e.map_att_sigma_rad = 0.1f64.to_radians();
-        e.map_tau_s = 10.0;
         let mut i = init();
         i.time_offset_s = 0.005;
-        let mut f = InsFilter::new(turn.state(0.0), &i, e);
+        let mut f = InsFilter::new(turn.state(0.0), &i, errors_with_map_offset());
         let q = UnitQuaternion::identity();
         let truth = turn.at(0.0);
         let fix = CameraPose::new(Ecef(truth.p + Vector3::new(300.0, -200.0, 100.0)), truth.q);
@@ -1346,12 +1349,8 @@ mod tests {
     #[test]
     fn the_map_offset_resizes_its_prior_or_only_its_process_noise() {
         let turn = Turn::new();
-        let mut e = errors();
-        e.map_sigma_m = 40.0;
-        e.map_att_sigma_rad = 0.1f64.to_radians();
-        e.map_tau_s = 10.0;
         let q = UnitQuaternion::identity();
-        let mut f = InsFilter::new(turn.state(0.0), &init(), e);
+        let mut f = InsFilter::new(turn.state(0.0), &init(), errors_with_map_offset());
         // A fix correlates the offset with the pose.
         let fix = CameraPose::new(Ecef(turn.at(0.0).p + Vector3::new(30.0, 0.0, 0.0)), turn.at(0.0).q);
         f.update_with_pose(&q, &fix, &(Matrix6::identity() * 4.0)).expect("regular");

@@ -294,6 +294,12 @@ struct NavigateArgs {
     /// Landmarks correlated per image.
     #[arg(long, default_value_t = 300)]
     max_landmarks: usize,
+    /// Tiles an acquisition searches per frame when the guess's uncertainty
+    /// is wider than one search reaches (a low camera kilometres off):
+    /// nearest first, a few per frame, so a lost frame costs at most this
+    /// many acquisition searches.
+    #[arg(long, default_value_t = 4)]
+    acquisition_tiles: usize,
     /// Position uncertainty of init.json (m, 1 sigma): the first search's radius
     /// and the first fix's height check.
     #[arg(long, default_value_t = 300.0)]
@@ -664,6 +670,7 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
     params.min_inlier_share = a.min_inlier_share;
     params.max_height_jump_m = a.max_height_jump;
     params.max_landmarks = a.max_landmarks;
+    params.acquisition_tiles = a.acquisition_tiles;
     params.init_sigma_m = a.init_sigma_m;
     params.init_sigma_deg = a.init_sigma_deg;
     params.filter = match a.filter {
@@ -740,7 +747,7 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
     }
     let report = run.report;
     tracing::info!(
-        "{} of {} frames processed, {} fixes ({} rejected for too few inliers, {} for too small a share of inliers, {} for inliers on a line or in a cluster, {} for their height, {} as inconsistent with the inertial filter; {} frames without a fix updated the filter with their matches; {} frames updated it with the landmarks tracked from the image before), median {:.1} ms per frame; wrote {}, {} and {}",
+        "{} of {} frames processed, {} fixes ({} rejected for too few inliers, {} for too small a share of inliers, {} for inliers on a line or in a cluster, {} for their height, {} as inconsistent with the inertial filter, {} acquisitions held for the next frame to confirm; {} frames without a fix updated the filter with their matches; {} frames updated it with the landmarks tracked from the image before), median {:.1} ms per frame; wrote {}, {} and {}",
         report.processed,
         report.frames,
         report.fixes,
@@ -749,6 +756,7 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
         report.rejected.spread,
         report.rejected.height,
         report.rejected.inconsistent,
+        report.rejected.unconfirmed,
         report.prior_gated_updates,
         report.track_updates,
         report.median_ms,

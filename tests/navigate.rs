@@ -239,22 +239,33 @@ fn realistic_flight(d: &Path, scenario: &str, horizontal_m: f64, duration_s: &st
     let ortho = common::sample("sierra-ortho-draped.tif", d);
     let dem = common::sample("sierra-dem.tif", d);
     let db = d.join("sierra.gpkg");
-    let real = ["--ortho-bands", "3,2,1", "--dem-vertical", "egm96"];
     let o = run(&[
         &["build", "--ortho", ortho.to_str().unwrap(), "--dem", dem.to_str().unwrap()][..],
-        &real[..],
+        &REALISTIC[..],
         &["--out", db.to_str().unwrap()][..],
     ]
     .concat());
     assert!(o.status.success(), "build failed: {}", stderr(&o));
+    (db, realistic_sim(d, scenario, horizontal_m, duration_s, "flight"))
+}
+
+/// The Sierra world's options (Landsat bands, EGM96 heights).
+const REALISTIC: [&str; 4] = ["--ortho-bands", "3,2,1", "--dem-vertical", "egm96"];
+
+/// A realistic scenario rendered over the Sierra world (its samples in `d`,
+/// as [`realistic_flight`] copies them) into `d/name`, with its initial
+/// guess `horizontal_m` off.
+fn realistic_sim(d: &Path, scenario: &str, horizontal_m: f64, duration_s: &str, name: &str) -> PathBuf {
+    let (ortho, dem) = (d.join("sierra-ortho-draped.tif"), d.join("sierra-dem.tif"));
+    let real = REALISTIC;
     let src = Path::new(env!("CARGO_MANIFEST_DIR"))
         .join(format!("data-samples/scenarios/realistic/{scenario}.json"));
     let mut scenario: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(src).unwrap()).unwrap();
     scenario["init_error"]["horizontal_m"] = serde_json::json!(horizontal_m);
-    let scenario_path = d.join("scenario.json");
+    let scenario_path = d.join(format!("{name}.json"));
     std::fs::write(&scenario_path, scenario.to_string()).unwrap();
-    let flight = d.join("flight");
+    let flight = d.join(name);
     let o = run(&[
         &["simulate", "--ortho", ortho.to_str().unwrap(), "--dem", dem.to_str().unwrap()][..],
         &real[..],
@@ -269,7 +280,7 @@ fn realistic_flight(d: &Path, scenario: &str, horizontal_m: f64, duration_s: &st
     ]
     .concat());
     assert!(o.status.success(), "simulate failed: {}", stderr(&o));
-    (db, flight)
+    flight
 }
 
 /// Navigates `s` into `poses` with `args`; returns the first fixed frame,
@@ -310,15 +321,25 @@ fn acquires_from_5_km_on_real_relief() {
 /// above the pad) with its guess 1.5 km off (about 23 deg of view at that
 /// height), told. Its acquisition searches the 160x120 level: on the 80x60
 /// one (two coarse templates across) it never fixed, whichever way the
-/// guess was off (README, acquisition).
+/// guess was off (README, acquisition). Then 5 km off (twice what one
+/// search reaches at that height): the acquisition searches in tiles,
+/// six a frame, nearest first.
 #[test]
-fn a_low_camera_acquires_from_1_5_km() {
+fn a_low_camera_acquires_from_1_5_and_5_km() {
     let dir = tempfile::tempdir().unwrap();
     let (db, flight) = realistic_flight(dir.path(), "sierra-rocket-640x480", 1500.0, "3");
     let s = NavFixture { dir: tempfile::tempdir().unwrap(), db, flight };
     let (first, share, worst) = acquisition(&s, &s.root().join("poses.csv"), &["--init-sigma-m", "1500"]);
     assert!(first.is_some_and(|f| f <= 2), "first fix at frame {first:?}");
     assert!(share >= 0.6 && worst.is_some_and(|w| w < 250.0), "fix share {share}, worst fix {worst:?} m");
+    let far = realistic_sim(dir.path(), "sierra-rocket-640x480", 5000.0, "3", "flight-5km");
+    let s = NavFixture { flight: far, ..s };
+    let (first, share, worst) = acquisition(&s, &s.root().join("poses-5km.csv"), &["--init-sigma-m", "5000"]);
+    assert!(first.is_some_and(|f| f <= 5), "5 km: first fix at frame {first:?}");
+    assert!(
+        share >= 0.5 && worst.is_some_and(|w| w < 250.0),
+        "5 km: fix share {share}, worst fix {worst:?} m"
+    );
 }
 
 #[test]
@@ -347,6 +368,7 @@ fn bad_inputs_are_named() {
         ("--alpha-max", "90"),
         ("--min-inliers", "3"),
         ("--max-landmarks", "2"),
+        ("--acquisition-tiles", "0"),
         ("--init-sigma-m", "0"),
         ("--min-inlier-share", "1.5"),
         ("--init-sigma-deg", "inf"),

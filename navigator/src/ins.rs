@@ -642,6 +642,17 @@ impl InsFilter {
         self.scale_sigmas(ATT..VEL + 3, factor);
     }
 
+    /// Caps the velocity's uncertainty at `sigma_m_s` per axis (keeping its
+    /// correlations): frames of doubt before a restart inflate the pose's
+    /// uncertainty, and the propagation carries that into the velocity
+    /// without bound, which then says nothing a restart's fix should keep.
+    pub fn cap_velocity_sigma(&mut self, sigma_m_s: f64) {
+        let worst = (VEL..VEL + 3).map(|i| self.covariance[(i, i)]).fold(0.0, f64::max).sqrt();
+        if worst > sigma_m_s && sigma_m_s > 0.0 {
+            self.scale_sigmas(VEL..VEL + 3, sigma_m_s / worst);
+        }
+    }
+
     /// Scales the uncertainty of attitude and position only by `factor`
     /// (the velocity's is left): what the filter does when the images have
     /// not yet confirmed an initial guess, which says nothing of velocity.

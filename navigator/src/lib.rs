@@ -99,6 +99,9 @@ impl RunOptions {
         if p.max_landmarks < 4 {
             return bad("--max-landmarks", "must be at least 4");
         }
+        if p.acquisition_tiles == 0 {
+            return bad("--acquisition-tiles", "must be at least 1");
+        }
         if !positive(p.init_sigma_m) {
             return bad("--init-sigma-m", "must be metres > 0");
         }
@@ -255,6 +258,9 @@ pub struct RejectedCounts {
     pub height: usize,
     /// Image-only poses the inertial filter's gate refused.
     pub inconsistent: usize,
+    /// Acquisitions found in a tile away from the guess, held until the
+    /// next frame confirms them.
+    pub unconfirmed: usize,
 }
 
 /// Reads a flight image as grey levels (RGB by Rec. 601 luma).
@@ -368,6 +374,7 @@ pub fn run_flight(
             Some(Rejection::Spread { .. }) => rejected.spread += 1,
             Some(Rejection::Height { .. }) => rejected.height += 1,
             Some(Rejection::Inconsistent { .. }) => rejected.inconsistent += 1,
+            Some(Rejection::Unconfirmed { .. }) => rejected.unconfirmed += 1,
             None => {}
         }
         gated += usize::from(r.gated_matches > 0);

@@ -81,6 +81,11 @@ pub struct NavParams {
     pub max_height_jump_m: f64,
     /// Landmarks correlated per frame (spread over the image).
     pub max_landmarks: usize,
+    /// Tiles an acquisition searches per frame when the uncertainty is wider
+    /// than one search reaches (a low camera kilometres off; see
+    /// [`acquisition_tiles`]): the cost of a lost frame is at most this many
+    /// acquisition searches.
+    pub acquisition_tiles: usize,
     /// Image cells (across x down) the landmarks are spread over.
     pub grid: (usize, usize),
     /// RANSAC inlier threshold at full resolution (px).
@@ -174,6 +179,7 @@ impl Default for NavParams {
             min_inlier_spread: 0.08,
             max_height_jump_m: 450.0,
             max_landmarks: 300,
+            acquisition_tiles: 4,
             grid: (8, 6),
             ransac_threshold_px: 2.0,
             ncc: NccParams { min_peak: 0.5, max_second_ratio: 0.92, min_template_std: 2.0 },
@@ -245,6 +251,10 @@ pub enum Rejection {
     Height { off_m: f64, allowed_m: f64 },
     /// The image-only pose disagrees with the inertial filter's prediction.
     Inconsistent { chi2: f64 },
+    /// An acquisition found in a tile away from the guess (east, north;
+    /// m): of the many places such a search tries, one may alias, so it is
+    /// a fix only once the next frame, searched around it, confirms it.
+    Unconfirmed { tile_east_m: f64, tile_north_m: f64 },
 }
 
 /// The height check of a fix: where its height should be and how far from it
@@ -353,6 +363,12 @@ pub struct Navigator<'a> {
     guess_doubted: bool,
     /// A fix has sized the map offset's prior ([`map_sigmas_for_gsd`]).
     map_sized: bool,
+    /// The next tile of an acquisition searched in tiles
+    /// ([`acquisition_tiles`]).
+    acquisition_cursor: usize,
+    /// A tiled acquisition the next frame is to confirm: its time, pose and
+    /// position sigma (m).
+    candidate: Option<(f64, CameraPose, f64)>,
 }
 
 /// A frame's prediction: the pose guess and how far it may be off.
@@ -374,6 +390,7 @@ struct Prediction {
 /// The filter carried to a frame (one per frame, moved by value: the size
 /// difference of the variants costs nothing worth a box).
 #[allow(clippy::large_enum_variant)]
+#[derive(Clone)]
 enum Carried {
     /// [`FilterMode::Fixes`]: the attitude filter's covariance.
     Attitude(Matrix6<f64>),
@@ -419,6 +436,13 @@ struct Search {
 /// A first search radius above this share of the focal length is an
 /// acquisition (see `solve`).
 const ACQUISITION_RADIUS_F: f64 = 0.5;
+
+/// Spacing of the tiles, as a share of what one search reaches (the
+/// footprint widened by the image's size): a guess that far off diagonally
+/// is still found.
+const ACQUISITION_TILE_SPACING: f64 = 0.7;
+/// Most tiles an acquisition lays out.
+const ACQUISITION_MAX_TILES: usize = 400;
 /// Shortest image side (level pixels) an acquisition searches at. Measured
 /// on the realistic flights (README, acquisition): a 640x480 camera's 80x60
 /// level (two of its coarse templates across, searched over the whole
@@ -571,6 +595,8 @@ impl<'a> Navigator<'a> {
             track: None,
             guess_doubted: false,
             map_sized: false,
+            acquisition_cursor: 0,
+            candidate: None,
         })
     }
 
@@ -882,6 +908,7 @@ impl<'a> Navigator<'a> {
                 if let Some(r) = self.refine_inliers(sol, None) {
                     debug!("t {t:.3}: acquired: the filter's pose restarts from the image's");
                     f.reset_pose(&q, &r.pose, &r.covariance, 0.0);
+                    f.cap_velocity_sigma(self.params.init_velocity_sigma_m_s);
                 }
             }
             FilterMode::Loose => {
@@ -955,7 +982,18 @@ impl<'a> Navigator<'a> {
         let start = Instant::now();
         self.update_camera(t);
         let pred = self.predict(t);
-        let outcome = self.solve(t, &pred, image);
+        // A tiled acquisition of the frame before: this frame searches
+        // around it, and a fix there confirms it (an acquisition: the
+        // filter restarts from it); else the tiles go on.
+        let confirming = self.candidate.take().and_then(|c| self.candidate_prediction(t, &pred, c));
+        let outcome = match confirming {
+            Some(around) => self.solve(t, &around, image).map(|mut sol| {
+                debug!("t {t:.3}: searched around the acquisition of the frame before");
+                sol.acquisition = true;
+                sol
+            }),
+            None => self.solve(t, &pred, image),
+        };
         let found = match &outcome {
             Ok(sol) => matches_of(sol),
             Err(e) => e.found.clone(),
@@ -991,6 +1029,11 @@ impl<'a> Navigator<'a> {
                 } else {
                     None
                 };
+                if let (None, Some(tile)) = (rejection, sol.tile) {
+                    debug!("t {t:.3}: acquisition in a tile held for the next frame to confirm");
+                    self.candidate = Some((t, sol.pose, sol.position_covariance().trace().sqrt()));
+                    rejection = Some(Rejection::Unconfirmed { tile_east_m: tile.x, tile_north_m: tile.y });
+                }
                 let frame = if rejection.is_none() { self.calibration_frame(&sol) } else { None };
                 // An acquisition searched the whole prior: nothing to test
                 // it against (its pose restarts the filter's, below).
@@ -1006,6 +1049,9 @@ impl<'a> Navigator<'a> {
                     });
                     let calibration_cov = self.calibrate(t, &mut sol, frame, &mut pred.filter);
                     self.last_fix = Some((t, sol.pose));
+                    // A later acquisition in tiles starts from the nearest
+                    // (one that failed its confirmation goes on from there).
+                    self.acquisition_cursor = 0;
                     let ecef = match pred.filter {
                         Carried::Ins(f) => self.accept_ins(t, f, &sol, calibration_cov, &focal),
                         Carried::Attitude(attitude) => {
@@ -1223,9 +1269,141 @@ impl<'a> Navigator<'a> {
         let acquisition = wanted > f * ACQUISITION_RADIUS_F;
         let radius_full = if acquisition { wanted.min(w.max(h)) } else { wanted.min(f * 0.25) };
         let margin_px = if acquisition { radius_full } else { 0.0 };
+        // An uncertainty wider than one search reaches (a low camera
+        // kilometres off) is searched in tiles, a few per frame.
+        let tiles = if acquisition {
+            let reach_m = margin_px / f * fp.center_range_m;
+            let need_m = wanted / f * fp.center_range_m;
+            acquisition_tiles(reach_m, need_m)
+        } else {
+            vec![Vector2::zeros()]
+        };
+        let (first, count) = if tiles.len() > 1 {
+            let first = self.acquisition_cursor % tiles.len();
+            self.acquisition_cursor = first + self.params.acquisition_tiles;
+            debug!(
+                "t {t:.3}: acquisition in {} tiles of {:.0} m: {first}.. this frame",
+                tiles.len(),
+                ACQUISITION_TILE_SPACING * margin_px / f * fp.center_range_m
+            );
+            (first, self.params.acquisition_tiles.min(tiles.len()))
+        } else {
+            (0, 1)
+        };
+        let mut outcome = Err(NoSolution::default());
+        for k in 0..count {
+            let offset = tiles[(first + k) % tiles.len()];
+            let (at, fp_at) = if offset == Vector2::zeros() {
+                (*guess, fp.clone())
+            } else {
+                let at = CameraPose { position: shifted_enu(&guess.position, &offset), ..*guess };
+                match footprint(
+                    &self.camera,
+                    &at,
+                    &FootprintParams {
+                        step_px: self.params.horizon_step_px,
+                        alpha_max_deg: self.params.alpha_max_deg,
+                        terrain_h_m: self.terrain_h_m,
+                    },
+                ) {
+                    Ok(fp_at) => (at, fp_at),
+                    Err(_) => continue,
+                }
+            };
+            let found = self.search_from(&pyr, &at, fp_at, radius_full, margin_px, prior.as_ref());
+            // A tile stands when its solution would: enough inliers, and a
+            // share of its matches (else the next tile is searched, and the
+            // strongest failure is what the frame reports).
+            let stands = found.as_ref().is_ok_and(|sol| {
+                sol.inliers >= self.params.min_inliers
+                    && sol.inliers as f64 >= self.params.min_inlier_share * sol.n_matches as f64
+            });
+            if tiles.len() == 1 || stands {
+                outcome = found.map(|mut sol| {
+                    if tiles.len() > 1 {
+                        debug!(
+                            "t {t:.3}: acquired in the tile {:.0} m east, {:.0} m north of the guess",
+                            offset.x, offset.y
+                        );
+                        sol.tile = Some(offset);
+                    }
+                    sol
+                });
+                break;
+            }
+            let stronger = match (&found, &outcome) {
+                (Ok(a), Ok(b)) => a.inliers > b.inliers,
+                (Ok(_), Err(_)) => true,
+                (Err(a), Err(b)) => a.matches > b.matches,
+                (Err(_), Ok(_)) => false,
+            };
+            if stronger {
+                outcome = found;
+            }
+        }
+        let mut sol = outcome?;
+        // The refined terrain height helps the next footprint.
+        if let Some(h) = sol.mean_landmark_h {
+            self.terrain_h_m = h;
+        }
+        // Sorted by landmark, with where the guess put each one.
+        let mut order: Vec<usize> = (0..sol.records.len()).collect();
+        order.sort_by_key(|&i| sol.records[i].landmark);
+        sol.guess_px =
+            order.iter().map(|&i| guess.project(&self.camera, &trn_geodesy::Ecef(sol.points[i]))).collect();
+        sol.records = order.iter().map(|&i| sol.records[i]).collect();
+        Ok(sol)
+    }
+
+    /// The prediction that searches around a tiled acquisition made at
+    /// `t0` (`pose`, its position sigma `sigma0_m`): the pose carried to `t`
+    /// by the filter's rotation and velocity since, its uncertainty the
+    /// acquisition's plus the velocity's over the interval; `None` without
+    /// the inertial filter.
+    fn candidate_prediction(
+        &self,
+        t: f64,
+        pred: &Prediction,
+        (t0, pose, sigma0_m): (f64, CameraPose, f64),
+    ) -> Option<Prediction> {
+        let Carried::Ins(f) = &pred.filter else { return None };
+        let before = self.ins.as_ref()?;
+        let dt = (t - t0).max(0.0);
+        // The filter's own attitude change and velocity (its position is
+        // the doubted guess's; its motion is the IMU's).
+        let turn = f.state.q_ecef_imu * before.state.q_ecef_imu.inverse();
+        let (v, v_cov) = f.velocity();
+        let guess = CameraPose::new(trn_geodesy::Ecef(pose.position.0 + v * dt), turn * pose.q_ecef_cam);
+        // (Frames of doubt before it may have inflated the filter's velocity
+        // uncertainty without bound: at most the initial guess's.)
+        let v_var = v_cov.trace().min(3.0 * self.params.init_velocity_sigma_m_s.powi(2));
+        let sigma_m = (sigma0_m.powi(2) + v_var * dt * dt).sqrt();
+        let att_sigma = (pred.att_cov.trace() / 3.0).sqrt().min(1f64.to_radians());
+        Some(Prediction {
+            guess,
+            att_cov: Matrix3::identity() * att_sigma.powi(2),
+            sigma_m,
+            pose_cov: None,
+            filter: pred.filter.clone(),
+        })
+    }
+
+    /// The coarse-to-fine search of one image around the pose `guess`
+    /// (its footprint `fp`): a search radius of `radius_full` pixels, and
+    /// with `margin_px` (an acquisition) the footprint widened by it.
+    fn search_from(
+        &self,
+        pyr: &Pyramid,
+        guess: &CameraPose,
+        fp: Footprint,
+        radius_full: f64,
+        margin_px: f64,
+        prior: Option<&AttitudePrior>,
+    ) -> Result<Solution, NoSolution> {
+        let f = self.camera.fx.min(self.camera.fy);
         let fp = if margin_px > 0.0 {
             let metres = margin_px / f * fp.center_range_m;
-            debug!("t {t:.3}: acquisition: search radius {radius_full:.0} px, footprint widened by {metres:.0} m");
+            debug!("acquisition: search radius {radius_full:.0} px, footprint widened by {metres:.0} m");
             trn_view::footprint::Footprint { bbox: fp.bbox.grown_m(metres), ..fp }
         } else {
             fp
@@ -1260,7 +1438,7 @@ impl<'a> Navigator<'a> {
         for level in (0..=k).rev() {
             // Below an accepted coarse level the search is local again.
             let margin = if best.is_some() { 0.0 } else { margin_px };
-            match self.stage(&pyr, &pose, &fp, level, Search { radius, margin_px: margin }, prior.as_ref()) {
+            match self.stage(pyr, &pose, &fp, level, Search { radius, margin_px: margin }, prior) {
                 Ok(sol) if level == 0 || (sol.inliers >= self.params.min_inliers && !sol.prior_loosened) => {
                     pose = sol.pose;
                     best = Some(sol);
@@ -1290,16 +1468,6 @@ impl<'a> Navigator<'a> {
         }
         let mut sol = best.ok_or(NoSolution::default())?;
         sol.acquisition = margin_px > 0.0;
-        // The refined terrain height helps the next footprint.
-        if let Some(h) = sol.mean_landmark_h {
-            self.terrain_h_m = h;
-        }
-        // Sorted by landmark, with where the guess put each one.
-        let mut order: Vec<usize> = (0..sol.records.len()).collect();
-        order.sort_by_key(|&i| sol.records[i].landmark);
-        sol.guess_px =
-            order.iter().map(|&i| guess.project(&self.camera, &trn_geodesy::Ecef(sol.points[i]))).collect();
-        sol.records = order.iter().map(|&i| sol.records[i]).collect();
         Ok(sol)
     }
 
@@ -1484,6 +1652,7 @@ impl<'a> Navigator<'a> {
             mean_landmark_h: (inliers > 0).then(|| h_sum / inliers as f64),
             median_gsd_m: median(&mut gsds),
             acquisition: false,
+            tile: None,
         })
     }
 
@@ -1650,6 +1819,9 @@ struct Solution {
     /// The pose came from an acquisition (a search over the whole
     /// uncertainty of a guess kilometres off).
     acquisition: bool,
+    /// The acquisition's tile (east, north offset of the guess, m) when it
+    /// searched in tiles ([`acquisition_tiles`]).
+    tile: Option<Vector2<f64>>,
     mean_landmark_h: Option<f64>,
     /// The inliers' median ground sample distance (m).
     median_gsd_m: Option<f64>,
@@ -1811,6 +1983,36 @@ fn median(v: &mut [f64]) -> Option<f64> {
 }
 
 /// Every match of a solution (inliers or not) as found.
+/// Where an acquisition searches (east, north offsets of the guess, m,
+/// nearest first) when one search reaches `reach_m` around the guess and
+/// the uncertainty `need_m`: the guess alone when one search covers it,
+/// else a square grid of `ACQUISITION_TILE_SPACING * reach_m` over the
+/// disc of `need_m` (at most [`ACQUISITION_MAX_TILES`]).
+fn acquisition_tiles(reach_m: f64, need_m: f64) -> Vec<Vector2<f64>> {
+    if !(reach_m > 0.0 && need_m > reach_m) {
+        return vec![Vector2::zeros()];
+    }
+    let step = ACQUISITION_TILE_SPACING * reach_m;
+    // Rings enough for the most tiles, however wide the uncertainty.
+    let most_rings = (ACQUISITION_MAX_TILES as f64).sqrt().ceil() as i64;
+    let n = ((need_m / step).ceil() as i64).min(most_rings);
+    let mut tiles: Vec<Vector2<f64>> = (-n..=n)
+        .flat_map(|i| (-n..=n).map(move |j| Vector2::new(i as f64 * step, j as f64 * step)))
+        .filter(|o| o.norm() <= need_m + 0.5 * step)
+        .collect();
+    tiles.sort_by(|a, b| a.norm().total_cmp(&b.norm()).then(a.x.total_cmp(&b.x)).then(a.y.total_cmp(&b.y)));
+    tiles.truncate(ACQUISITION_MAX_TILES);
+    tiles
+}
+
+/// `p` moved by `offset` (east, north; m) in its local level frame.
+fn shifted_enu(p: &trn_geodesy::Ecef, offset: &Vector2<f64>) -> trn_geodesy::Ecef {
+    let g = p.to_geodetic();
+    let moved =
+        trn_geodesy::LocalFrame::at(g).to_ecef(trn_geodesy::Enu::new(offset.x, offset.y, 0.0)).to_geodetic();
+    trn_geodesy::Geodetic::new(moved.lat_deg, moved.lon_deg, g.h_m).to_ecef()
+}
+
 fn matches_of(sol: &Solution) -> Vec<Match> {
     sol.records
         .iter()
@@ -2087,6 +2289,7 @@ mod tests {
             covariance: Matrix6::identity(),
             prior_loosened: false,
             acquisition: false,
+            tile: None,
             mean_landmark_h: None,
             median_gsd_m: None,
         }
@@ -2312,6 +2515,39 @@ mod tests {
         assert!(velocity_fit(&short).is_none());
         let two: std::collections::VecDeque<_> = [exact[0], exact[12]].into_iter().collect();
         assert!(velocity_fit(&two).is_none());
+    }
+
+    #[test]
+    fn an_acquisition_wider_than_its_reach_is_laid_out_in_tiles_nearest_first() {
+        // One search covers it: the guess alone.
+        assert_eq!(acquisition_tiles(2000.0, 1500.0), vec![Vector2::zeros()]);
+        assert_eq!(acquisition_tiles(0.0, 1500.0), vec![Vector2::zeros()]);
+        // 5 km with a 2 km reach: every point of the disc is within half a
+        // reach of a tile (brute force on a fine grid), the guess first,
+        // nearest first.
+        let (reach, need) = (2000.0, 5000.0);
+        let tiles = acquisition_tiles(reach, need);
+        assert_eq!(tiles[0], Vector2::zeros());
+        assert!(tiles.windows(2).all(|w| w[0].norm() <= w[1].norm()));
+        let step = ACQUISITION_TILE_SPACING * reach;
+        assert!(tiles.iter().all(|t| t.norm() <= need + 0.5 * step));
+        let mut worst: f64 = 0.0;
+        for i in -50..=50 {
+            for j in -50..=50 {
+                let p = Vector2::new(i as f64, j as f64) * (need / 50.0);
+                if p.norm() <= need {
+                    let d = tiles.iter().map(|t| (t - p).norm()).fold(f64::INFINITY, f64::min);
+                    worst = worst.max(d);
+                }
+            }
+        }
+        assert!(worst <= 0.5 * reach && worst > 0.4 * reach, "farthest point from a tile {worst} m");
+        // However wide the doubt, at most ACQUISITION_MAX_TILES.
+        for need in [1e5, 1e9, f64::INFINITY] {
+            let t = acquisition_tiles(reach, need);
+            assert_eq!(t.len(), ACQUISITION_MAX_TILES, "{need}");
+            assert_eq!(t[0], Vector2::zeros());
+        }
     }
 
     #[test]

@@ -1176,6 +1176,36 @@ mod tests {
     }
 
     #[test]
+    fn a_velocity_doubt_inflated_by_doubted_poses_is_capped_with_its_correlations() {
+        let turn = Turn::new();
+        let mut f = InsFilter::new(turn.state(0.0), &init(), errors());
+        let (imu, _, _) = turn.imu(100.0, 10.0, None);
+        // Frames of doubt: the pose's sigmas doubled 20 times, carried by
+        // the propagation into the velocity's.
+        for k in 1..=20 {
+            f.inflate_pose(2.0);
+            f.propagate(0.5 * k as f64, &imu);
+        }
+        let before = f.covariance;
+        let worst = (VEL..VEL + 3).map(|i| before[(i, i)].sqrt()).fold(0.0, f64::max);
+        assert!(worst > 1e4, "{worst} m/s");
+        f.cap_velocity_sigma(300.0);
+        let after = f.covariance;
+        let capped = (VEL..VEL + 3).map(|i| after[(i, i)].sqrt()).fold(0.0, f64::max);
+        assert!((capped - 300.0).abs() < 1e-6, "{capped}");
+        // Correlations kept; the other blocks untouched.
+        let rho = |p: &Covariance, i: usize, j: usize| p[(i, j)] / (p[(i, i)] * p[(j, j)]).sqrt();
+        for (i, j) in [(VEL, VEL + 1), (VEL, POS), (VEL + 2, ATT)] {
+            assert!((rho(&after, i, j) - rho(&before, i, j)).abs() < 1e-9, "{i} {j}");
+        }
+        assert_eq!(after.fixed_view::<6, 6>(ATT, ATT), before.fixed_view::<6, 6>(ATT, ATT));
+        // Under the cap: nothing changes.
+        let mut g = f.clone();
+        g.cap_velocity_sigma(1e6);
+        assert_eq!(g.covariance, f.covariance);
+    }
+
+    #[test]
     fn inflating_keeps_correlations_and_a_reset_takes_the_fix() {
         let turn = Turn::new();
         let mut f = InsFilter::new(turn.state(0.0), &init(), errors());

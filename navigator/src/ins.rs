@@ -642,15 +642,21 @@ impl InsFilter {
         self.scale_sigmas(ATT..VEL + 3, factor);
     }
 
-    /// Caps the velocity's uncertainty at `sigma_m_s` per axis (keeping its
-    /// correlations): frames of doubt before a restart inflate the pose's
-    /// uncertainty, and the propagation carries that into the velocity
-    /// without bound, which then says nothing a restart's fix should keep.
-    pub fn cap_velocity_sigma(&mut self, sigma_m_s: f64) {
+    /// Forgets a velocity doubted beyond `sigma_m_s` (on any axis): frames of
+    /// doubt before a restart inflate the pose's uncertainty, and the
+    /// propagation carries it into the velocity's without bound, and the
+    /// estimate with it (the IMU integrated through a wrong attitude). Such a
+    /// velocity restarts as the initial guess's: zero, `sigma_m_s` per axis,
+    /// uncorrelated. Returns whether it did.
+    pub fn forget_velocity_beyond(&mut self, sigma_m_s: f64) -> bool {
         let worst = (VEL..VEL + 3).map(|i| self.covariance[(i, i)]).fold(0.0, f64::max).sqrt();
-        if worst > sigma_m_s && sigma_m_s > 0.0 {
-            self.scale_sigmas(VEL..VEL + 3, sigma_m_s / worst);
+        if !(sigma_m_s > 0.0 && worst > sigma_m_s) {
+            return false;
         }
+        self.state.velocity_ecef_m_s = Vector3::zeros();
+        uncorrelate(&mut self.covariance, VEL..VEL + 3);
+        block(&mut self.covariance, VEL, sigma_m_s);
+        true
     }
 
     /// Scales the uncertainty of attitude and position only by `factor`
@@ -1176,7 +1182,7 @@ mod tests {
     }
 
     #[test]
-    fn a_velocity_doubt_inflated_by_doubted_poses_is_capped_with_its_correlations() {
+    fn a_velocity_doubted_without_bound_restarts_as_the_guess() {
         let turn = Turn::new();
         let mut f = InsFilter::new(turn.state(0.0), &init(), errors());
         let (imu, _, _) = turn.imu(100.0, 10.0, None);
@@ -1186,23 +1192,22 @@ mod tests {
             f.inflate_pose(2.0);
             f.propagate(0.5 * k as f64, &imu);
         }
-        let before = f.covariance;
-        let worst = (VEL..VEL + 3).map(|i| before[(i, i)].sqrt()).fold(0.0, f64::max);
+        let worst = (VEL..VEL + 3).map(|i| f.covariance[(i, i)].sqrt()).fold(0.0, f64::max);
         assert!(worst > 1e4, "{worst} m/s");
-        f.cap_velocity_sigma(300.0);
-        let after = f.covariance;
-        let capped = (VEL..VEL + 3).map(|i| after[(i, i)].sqrt()).fold(0.0, f64::max);
-        assert!((capped - 300.0).abs() < 1e-6, "{capped}");
-        // Correlations kept; the other blocks untouched.
-        let rho = |p: &Covariance, i: usize, j: usize| p[(i, j)] / (p[(i, i)] * p[(j, j)]).sqrt();
-        for (i, j) in [(VEL, VEL + 1), (VEL, POS), (VEL + 2, ATT)] {
-            assert!((rho(&after, i, j) - rho(&before, i, j)).abs() < 1e-9, "{i} {j}");
-        }
-        assert_eq!(after.fixed_view::<6, 6>(ATT, ATT), before.fixed_view::<6, 6>(ATT, ATT));
-        // Under the cap: nothing changes.
+        // Within the bound: nothing changes.
         let mut g = f.clone();
-        g.cap_velocity_sigma(1e6);
-        assert_eq!(g.covariance, f.covariance);
+        assert!(!g.forget_velocity_beyond(2.0 * worst));
+        assert_eq!(g, f);
+        let before = f.covariance;
+        assert!(f.forget_velocity_beyond(300.0));
+        assert_eq!(f.state.velocity_ecef_m_s, Vector3::zeros());
+        for i in 0..N {
+            for j in VEL..VEL + 3 {
+                let want = if i == j { 300.0 * 300.0 } else { 0.0 };
+                assert_eq!(f.covariance[(i, j)], want, "{i} {j}");
+            }
+        }
+        assert_eq!(f.covariance.fixed_view::<6, 6>(ATT, ATT), before.fixed_view::<6, 6>(ATT, ATT));
     }
 
     #[test]

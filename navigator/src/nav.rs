@@ -908,7 +908,9 @@ impl<'a> Navigator<'a> {
                 if let Some(r) = self.refine_inliers(sol, None) {
                     debug!("t {t:.3}: acquired: the filter's pose restarts from the image's");
                     f.reset_pose(&q, &r.pose, &r.covariance, 0.0);
-                    f.cap_velocity_sigma(self.params.init_velocity_sigma_m_s);
+                    if f.forget_velocity_beyond(self.params.init_velocity_sigma_m_s) {
+                        debug!("t {t:.3}: the velocity, doubted beyond the initial guess's, restarts as it");
+                    }
                 }
             }
             FilterMode::Loose => {

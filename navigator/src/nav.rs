@@ -1017,10 +1017,8 @@ impl<'a> Navigator<'a> {
         let mut gated_matches = 0;
         let (status, inliers, n_matches, matches, guess_px) = match outcome {
             Ok(mut sol) => {
-                let mut rejection = if sol.inliers < self.params.min_inliers {
-                    Some(Rejection::FewInliers { inliers: sol.inliers })
-                } else if (sol.inliers as f64) < self.params.min_inlier_share * sol.n_matches as f64 {
-                    Some(Rejection::InlierShare { inliers: sol.inliers, matches: sol.n_matches })
+                let mut rejection = if let Some(r) = self.count_check(&sol) {
+                    Some(r)
                 } else if let Some(r) = self.spread_check(&sol) {
                     Some(r)
                 } else if matches!(pred.filter, Carried::Attitude(_)) || self.last_fix.is_none() {
@@ -1183,6 +1181,28 @@ impl<'a> Navigator<'a> {
         );
     }
 
+    /// `Some` when the solution has too few inliers, or too small a share
+    /// of its matches.
+    fn count_check(&self, sol: &Solution) -> Option<Rejection> {
+        if sol.inliers < self.params.min_inliers {
+            Some(Rejection::FewInliers { inliers: sol.inliers })
+        } else if (sol.inliers as f64) < self.params.min_inlier_share * sol.n_matches as f64 {
+            Some(Rejection::InlierShare { inliers: sol.inliers, matches: sol.n_matches })
+        } else {
+            None
+        }
+    }
+
+    /// The ground the camera at `pose` sees (horizon walking, angle filter).
+    fn footprint_at(&self, pose: &CameraPose) -> Result<Footprint, trn_view::footprint::FootprintError> {
+        let params = FootprintParams {
+            step_px: self.params.horizon_step_px,
+            alpha_max_deg: self.params.alpha_max_deg,
+            terrain_h_m: self.terrain_h_m,
+        };
+        footprint(&self.camera, pose, &params)
+    }
+
     /// `Some` when the solution's inliers lie on a line or in a cluster.
     fn spread_check(&self, sol: &Solution) -> Option<Rejection> {
         let px: Vec<Pixel> = sol.records.iter().filter(|r| r.inlier).map(|r| Pixel::new(r.u, r.v)).collect();
@@ -1238,16 +1258,7 @@ impl<'a> Navigator<'a> {
             .then_some(AttitudePrior { q_ecef_cam: guess.q_ecef_cam, covariance: att_cov });
         let pyr = Pyramid::new(image, PYRAMID_LEVELS);
         let f = self.camera.fx.min(self.camera.fy);
-        let fp = footprint(
-            &self.camera,
-            guess,
-            &FootprintParams {
-                step_px: self.params.horizon_step_px,
-                alpha_max_deg: self.params.alpha_max_deg,
-                terrain_h_m: self.terrain_h_m,
-            },
-        )
-        .map_err(|e| {
+        let fp = self.footprint_at(guess).map_err(|e| {
             debug!("t {t:.3}: {e}");
             NoSolution::default()
         })?;
@@ -1299,15 +1310,7 @@ impl<'a> Navigator<'a> {
                 (*guess, fp.clone())
             } else {
                 let at = CameraPose { position: shifted_enu(&guess.position, &offset), ..*guess };
-                match footprint(
-                    &self.camera,
-                    &at,
-                    &FootprintParams {
-                        step_px: self.params.horizon_step_px,
-                        alpha_max_deg: self.params.alpha_max_deg,
-                        terrain_h_m: self.terrain_h_m,
-                    },
-                ) {
+                match self.footprint_at(&at) {
                     Ok(fp_at) => (at, fp_at),
                     Err(_) => continue,
                 }
@@ -1316,10 +1319,7 @@ impl<'a> Navigator<'a> {
             // A tile stands when its solution would: enough inliers, and a
             // share of its matches (else the next tile is searched, and the
             // strongest failure is what the frame reports).
-            let stands = found.as_ref().is_ok_and(|sol| {
-                sol.inliers >= self.params.min_inliers
-                    && sol.inliers as f64 >= self.params.min_inlier_share * sol.n_matches as f64
-            });
+            let stands = found.as_ref().is_ok_and(|sol| self.count_check(sol).is_none());
             if tiles.len() == 1 || stands {
                 outcome = found.map(|mut sol| {
                     if tiles.len() > 1 {

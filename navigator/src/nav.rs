@@ -366,9 +366,18 @@ pub struct Navigator<'a> {
     /// The next tile of an acquisition searched in tiles
     /// ([`acquisition_tiles`]).
     acquisition_cursor: usize,
-    /// A tiled acquisition the next frame is to confirm: its time, pose and
-    /// position sigma (m).
-    candidate: Option<(f64, CameraPose, f64)>,
+    /// A tiled acquisition the next frame is to confirm.
+    candidate: Option<Candidate>,
+}
+
+/// An acquisition found in a tile away from the guess, held for the next
+/// frame to confirm ([`Rejection::Unconfirmed`]).
+#[derive(Clone, Copy, Debug)]
+struct Candidate {
+    t: f64,
+    pose: CameraPose,
+    /// Its position's 1-sigma (m, 3D).
+    sigma_m: f64,
 }
 
 /// A frame's prediction: the pose guess and how far it may be off.
@@ -1031,7 +1040,8 @@ impl<'a> Navigator<'a> {
                 };
                 if let (None, Some(tile)) = (rejection, sol.tile) {
                     debug!("t {t:.3}: acquisition in a tile held for the next frame to confirm");
-                    self.candidate = Some((t, sol.pose, sol.position_covariance().trace().sqrt()));
+                    let sigma_m = sol.position_covariance().trace().sqrt();
+                    self.candidate = Some(Candidate { t, pose: sol.pose, sigma_m });
                     rejection = Some(Rejection::Unconfirmed { tile_east_m: tile.x, tile_north_m: tile.y });
                 }
                 let frame = if rejection.is_none() { self.calibration_frame(&sol) } else { None };
@@ -1286,63 +1296,52 @@ impl<'a> Navigator<'a> {
         // kilometres off) is searched in tiles, a few per frame.
         let tiles = if acquisition {
             let reach_m = margin_px / f * fp.center_range_m;
-            let need_m = wanted / f * fp.center_range_m;
-            acquisition_tiles(reach_m, need_m)
+            acquisition_tiles(reach_m, wanted / f * fp.center_range_m)
         } else {
-            vec![Vector2::zeros()]
+            Vec::new()
         };
-        let (first, count) = if tiles.len() > 1 {
+        let outcome = if tiles.is_empty() {
+            self.search_from(&pyr, guess, fp, radius_full, margin_px, prior.as_ref())
+        } else {
             let first = self.acquisition_cursor % tiles.len();
+            let count = self.params.acquisition_tiles.min(tiles.len());
             self.acquisition_cursor = first + self.params.acquisition_tiles;
             debug!(
                 "t {t:.3}: acquisition in {} tiles of {:.0} m: {first}.. this frame",
                 tiles.len(),
                 ACQUISITION_TILE_SPACING * margin_px / f * fp.center_range_m
             );
-            (first, self.params.acquisition_tiles.min(tiles.len()))
-        } else {
-            (0, 1)
-        };
-        let mut outcome = Err(NoSolution::default());
-        for k in 0..count {
-            let offset = tiles[(first + k) % tiles.len()];
-            let (at, fp_at) = if offset == Vector2::zeros() {
-                (*guess, fp.clone())
-            } else {
-                let at = CameraPose { position: shifted_enu(&guess.position, &offset), ..*guess };
-                match self.footprint_at(&at) {
-                    Ok(fp_at) => (at, fp_at),
-                    Err(_) => continue,
+            let mut outcome = Err(NoSolution::default());
+            for offset in tiles.iter().cycle().skip(first).take(count) {
+                let at = match offset {
+                    o if *o == Vector2::zeros() => *guess,
+                    o => CameraPose { position: shifted_enu(&guess.position, o), ..*guess },
+                };
+                let Ok(fp_at) = self.footprint_at(&at) else { continue };
+                let found = self.search_from(&pyr, &at, fp_at, radius_full, margin_px, prior.as_ref());
+                // A tile stands when its solution would (enough inliers, and
+                // a share of its matches); else the next tile is searched,
+                // and the strongest failure is what the frame reports.
+                if found.as_ref().is_ok_and(|sol| self.count_check(sol).is_none()) {
+                    debug!(
+                        "t {t:.3}: acquired in the tile {:.0} m east, {:.0} m north of the guess",
+                        offset.x, offset.y
+                    );
+                    outcome = found.map(|sol| Solution { tile: Some(*offset), ..sol });
+                    break;
                 }
-            };
-            let found = self.search_from(&pyr, &at, fp_at, radius_full, margin_px, prior.as_ref());
-            // A tile stands when its solution would: enough inliers, and a
-            // share of its matches (else the next tile is searched, and the
-            // strongest failure is what the frame reports).
-            let stands = found.as_ref().is_ok_and(|sol| self.count_check(sol).is_none());
-            if tiles.len() == 1 || stands {
-                outcome = found.map(|mut sol| {
-                    if tiles.len() > 1 {
-                        debug!(
-                            "t {t:.3}: acquired in the tile {:.0} m east, {:.0} m north of the guess",
-                            offset.x, offset.y
-                        );
-                        sol.tile = Some(offset);
-                    }
-                    sol
-                });
-                break;
+                let stronger = match (&found, &outcome) {
+                    (Ok(a), Ok(b)) => a.inliers > b.inliers,
+                    (Ok(_), Err(_)) => true,
+                    (Err(a), Err(b)) => a.matches > b.matches,
+                    (Err(_), Ok(_)) => false,
+                };
+                if stronger {
+                    outcome = found;
+                }
             }
-            let stronger = match (&found, &outcome) {
-                (Ok(a), Ok(b)) => a.inliers > b.inliers,
-                (Ok(_), Err(_)) => true,
-                (Err(a), Err(b)) => a.matches > b.matches,
-                (Err(_), Ok(_)) => false,
-            };
-            if stronger {
-                outcome = found;
-            }
-        }
+            outcome
+        };
         let mut sol = outcome?;
         // The refined terrain height helps the next footprint.
         if let Some(h) = sol.mean_landmark_h {
@@ -1357,17 +1356,12 @@ impl<'a> Navigator<'a> {
         Ok(sol)
     }
 
-    /// The prediction that searches around a tiled acquisition made at
-    /// `t0` (`pose`, its position sigma `sigma0_m`): the pose carried to `t`
-    /// by the filter's rotation and velocity since, its uncertainty the
-    /// acquisition's plus the velocity's over the interval; `None` without
-    /// the inertial filter.
-    fn candidate_prediction(
-        &self,
-        t: f64,
-        pred: &Prediction,
-        (t0, pose, sigma0_m): (f64, CameraPose, f64),
-    ) -> Option<Prediction> {
+    /// The prediction that searches around a tiled acquisition `c`: its pose
+    /// carried to `t` by the filter's rotation and velocity since, its
+    /// uncertainty the acquisition's plus the velocity's over the interval;
+    /// `None` without the inertial filter.
+    fn candidate_prediction(&self, t: f64, pred: &Prediction, c: Candidate) -> Option<Prediction> {
+        let Candidate { t: t0, pose, sigma_m: sigma0_m } = c;
         let Carried::Ins(f) = &pred.filter else { return None };
         let before = self.ins.as_ref()?;
         let dt = (t - t0).max(0.0);
@@ -1986,13 +1980,14 @@ fn median(v: &mut [f64]) -> Option<f64> {
 
 /// Every match of a solution (inliers or not) as found.
 /// Where an acquisition searches (east, north offsets of the guess, m,
-/// nearest first) when one search reaches `reach_m` around the guess and
-/// the uncertainty `need_m`: the guess alone when one search covers it,
-/// else a square grid of `ACQUISITION_TILE_SPACING * reach_m` over the
-/// disc of `need_m` (at most [`ACQUISITION_MAX_TILES`]).
+/// nearest first, the guess itself first) when one search reaches `reach_m`
+/// around the guess and the uncertainty `need_m`: a square grid of
+/// `ACQUISITION_TILE_SPACING * reach_m` over the disc of `need_m` (at most
+/// [`ACQUISITION_MAX_TILES`]); none when one search around the guess
+/// covers it.
 fn acquisition_tiles(reach_m: f64, need_m: f64) -> Vec<Vector2<f64>> {
     if !(reach_m > 0.0 && need_m > reach_m) {
-        return vec![Vector2::zeros()];
+        return Vec::new();
     }
     let step = ACQUISITION_TILE_SPACING * reach_m;
     // Rings enough for the most tiles, however wide the uncertainty.
@@ -2521,9 +2516,9 @@ mod tests {
 
     #[test]
     fn an_acquisition_wider_than_its_reach_is_laid_out_in_tiles_nearest_first() {
-        // One search covers it: the guess alone.
-        assert_eq!(acquisition_tiles(2000.0, 1500.0), vec![Vector2::zeros()]);
-        assert_eq!(acquisition_tiles(0.0, 1500.0), vec![Vector2::zeros()]);
+        // One search around the guess covers it: no tiles.
+        assert!(acquisition_tiles(2000.0, 1500.0).is_empty());
+        assert!(acquisition_tiles(0.0, 1500.0).is_empty());
         // 5 km with a 2 km reach: every point of the disc is within half a
         // reach of a tile (brute force on a fine grid), the guess first,
         // nearest first.

@@ -666,13 +666,44 @@ impl InsFilter {
         self.scale_sigmas(ATT..POS + 3, factor);
     }
 
+    /// [`Self::inflate_pose`], each of the attitude and the position by at
+    /// most what takes its largest sigma (on any axis) to `max_attitude_rad`
+    /// / `max_position_m` (never shrinking one already beyond): a doubt
+    /// that grows frame by frame stays bounded where a search no longer
+    /// gains from it. Returns the factors applied (attitude, position).
+    pub fn inflate_pose_within(
+        &mut self,
+        factor: f64,
+        max_attitude_rad: f64,
+        max_position_m: f64,
+    ) -> (f64, f64) {
+        let worst =
+            |s: &Self, at: usize| (at..at + 3).map(|i| s.covariance[(i, i)]).fold(0.0, f64::max).sqrt();
+        let bounded =
+            |sigma: f64, max: f64| if sigma > 0.0 { (max / sigma).clamp(1.0, factor) } else { factor };
+        let k_att = bounded(worst(self, ATT), max_attitude_rad);
+        let k_pos = bounded(worst(self, POS), max_position_m);
+        let mut d = SMatrix::<f64, N, 1>::repeat(1.0);
+        for i in 0..3 {
+            d[ATT + i] = k_att;
+            d[POS + i] = k_pos;
+        }
+        self.scale_by(&d);
+        (k_att, k_pos)
+    }
+
     /// `P <- D P D` with `D` = `factor` on the states of `range`, 1 elsewhere.
     fn scale_sigmas(&mut self, range: std::ops::Range<usize>, factor: f64) {
         let mut d = SMatrix::<f64, N, 1>::repeat(1.0);
         for i in range {
             d[i] = factor;
         }
-        let scale = Covariance::from_diagonal(&d);
+        self.scale_by(&d);
+    }
+
+    /// `P <- D P D`, `D` the diagonal `d`.
+    fn scale_by(&mut self, d: &SMatrix<f64, N, 1>) {
+        let scale = Covariance::from_diagonal(d);
         self.covariance = scale * self.covariance * scale;
     }
 
@@ -1208,6 +1239,37 @@ mod tests {
             }
         }
         assert_eq!(f.covariance.fixed_view::<6, 6>(ATT, ATT), before.fixed_view::<6, 6>(ATT, ATT));
+    }
+
+    #[test]
+    fn a_doubt_grown_frame_by_frame_stops_at_its_bound() {
+        let turn = Turn::new();
+        let mut f = InsFilter::new(turn.state(0.0), &init(), errors());
+        let (imu, _, _) = turn.imu(100.0, 60.0, None);
+        let sigma =
+            |f: &InsFilter, at: usize| (at..at + 3).map(|i| f.covariance[(i, i)].sqrt()).fold(0.0, f64::max);
+        let (max_att, max_pos) = (20f64.to_radians(), 20_000.0);
+        let (att0, pos0) = (sigma(&f, ATT), sigma(&f, POS));
+        // The first frame doubles both.
+        let (ka, kp) = f.inflate_pose_within(2.0, max_att, max_pos);
+        assert_eq!((ka, kp), (2.0, 2.0));
+        assert!((sigma(&f, ATT) - 2.0 * att0).abs() < 1e-12 && (sigma(&f, POS) - 2.0 * pos0).abs() < 1e-9);
+        // 100 frames of doubt: bounded where doubling alone gave 2^100.
+        for k in 1..=100 {
+            f.inflate_pose_within(2.0, max_att, max_pos);
+            f.propagate(0.5 * k as f64, &imu);
+        }
+        let (att, pos, vel) = (sigma(&f, ATT), sigma(&f, POS), sigma(&f, VEL));
+        assert!(att <= 1.2 * max_att && att >= max_att, "attitude sigma {} deg", att.to_degrees());
+        // The position's own growth (the velocity's uncertainty over 50 s)
+        // goes on; the doubling stops at its bound.
+        assert!(pos >= max_pos && pos < 1e6, "position sigma {pos} m");
+        assert!(vel.is_finite() && vel < 1e4, "velocity sigma {vel} m/s");
+        // Beyond the bound, nothing is scaled (and nothing shrinks).
+        let mut g = f.clone();
+        let (ka, kp) = g.inflate_pose_within(2.0, 0.1 * max_att, 0.1 * max_pos);
+        assert_eq!((ka, kp), (1.0, 1.0));
+        assert_eq!(g, f);
     }
 
     #[test]

@@ -452,6 +452,19 @@ const ACQUISITION_RADIUS_F: f64 = 0.5;
 const ACQUISITION_TILE_SPACING: f64 = 0.7;
 /// Most tiles an acquisition lays out.
 const ACQUISITION_MAX_TILES: usize = 400;
+
+/// The largest attitude sigma (deg, any axis) that frames without a first
+/// fix grow the guess's doubt to: 2.5 sigmas then span the widest field
+/// of view, and more only loosens the gyro's prior on the search.
+const DOUBT_MAX_ATTITUDE_DEG: f64 = 20.0;
+
+/// The largest position sigma (m, any axis) that frames without a first
+/// fix grow the guess's doubt to: twice the 10 km a guess may be off (#13),
+/// and beyond the 400 tiles of a low camera's acquisition (35 km across at
+/// 3.5 km above the terrain). (Doubling without a bound reached 10^30 m in
+/// 100 frames.)
+const DOUBT_MAX_POSITION_M: f64 = 20_000.0;
+
 /// Shortest image side (level pixels) an acquisition searches at. Measured
 /// on the realistic flights (README, acquisition): a 640x480 camera's 80x60
 /// level (two of its coarse templates across, searched over the whole
@@ -459,7 +472,8 @@ const ACQUISITION_MAX_TILES: usize = 400;
 /// 160x120 level acquires both; the 200x150 rocket acquires 2 km off on its
 /// 100x75 level, and at full resolution (16 px templates searched over the
 /// whole image) it found aliases up to 491 m off; the 1024x768 balloons
-/// acquire 10 km off on their 128x96 level.
+/// acquire 10 km off on their 128x96 level. (A single acquisition that fails
+/// there searches again one level finer: see [`Navigator::search_from`].)
 const MIN_ACQUISITION_SIDE_PX: usize = 72;
 /// Huber threshold (px) of the self-calibration's residuals, as the
 /// full-resolution refinement's.
@@ -820,13 +834,15 @@ impl<'a> Navigator<'a> {
     /// inertial filter's pose uncertainty doubles (not the velocity's: the
     /// first fix then restarts the pose and keeps the velocity's prior), so
     /// the search widens frame by frame up to an acquisition (a guess 3 km
-    /// off, told 300 m, is fixed on its third frame). Once an image has
+    /// off, told 300 m, is fixed on its third frame), up to sigmas of
+    /// [`DOUBT_MAX_ATTITUDE_DEG`] and [`DOUBT_MAX_POSITION_M`]. Once an image has
     /// confirmed the pose, a frame without a fix (cloud) leaves the
     /// covariance to the IMU.
     fn doubt_unconfirmed_guess(&mut self, t: f64, filter: &mut Carried) {
         if let (None, Carried::Ins(f)) = (self.last_fix, filter) {
-            debug!("t {t:.3}: no fix yet: the guess's uncertainty doubles");
-            f.inflate_pose(2.0);
+            let (k_att, k_pos) =
+                f.inflate_pose_within(2.0, DOUBT_MAX_ATTITUDE_DEG.to_radians(), DOUBT_MAX_POSITION_M);
+            debug!("t {t:.3}: no fix yet: the guess's uncertainty grows (attitude x{k_att:.2}, position x{k_pos:.2})");
             self.guess_doubted = true;
         }
     }
@@ -997,6 +1013,7 @@ impl<'a> Navigator<'a> {
         // around it, and a fix there confirms it (an acquisition: the
         // filter restarts from it); else the tiles go on.
         let confirming = self.candidate.take().and_then(|c| self.candidate_prediction(t, &pred, c));
+        let was_confirming = confirming.is_some();
         let outcome = match confirming {
             Some(around) => self.solve(t, &around, image).map(|mut sol| {
                 debug!("t {t:.3}: searched around the acquisition of the frame before");
@@ -1038,11 +1055,11 @@ impl<'a> Navigator<'a> {
                 } else {
                     None
                 };
-                if let (None, Some(tile)) = (rejection, sol.tile) {
-                    debug!("t {t:.3}: acquisition in a tile held for the next frame to confirm");
+                if let Some(reported) = held(rejection, sol.tile, sol.acquisition, was_confirming) {
+                    debug!("t {t:.3}: acquisition held for the next frame to confirm ({rejection:?})");
                     let sigma_m = sol.position_covariance().trace().sqrt();
                     self.candidate = Some(Candidate { t, pose: sol.pose, sigma_m });
-                    rejection = Some(Rejection::Unconfirmed { tile_east_m: tile.x, tile_north_m: tile.y });
+                    rejection = Some(reported);
                 }
                 let frame = if rejection.is_none() { self.calibration_frame(&sol) } else { None };
                 // An acquisition searched the whole prior: nothing to test
@@ -1301,7 +1318,7 @@ impl<'a> Navigator<'a> {
             Vec::new()
         };
         let outcome = if tiles.is_empty() {
-            self.search_from(&pyr, guess, fp, radius_full, margin_px, prior.as_ref())
+            self.search_from(&pyr, guess, fp, radius_full, margin_px, prior.as_ref(), true)
         } else {
             let first = self.acquisition_cursor % tiles.len();
             let count = self.params.acquisition_tiles.min(tiles.len());
@@ -1318,7 +1335,7 @@ impl<'a> Navigator<'a> {
                     o => CameraPose { position: shifted_enu(&guess.position, o), ..*guess },
                 };
                 let Ok(fp_at) = self.footprint_at(&at) else { continue };
-                let found = self.search_from(&pyr, &at, fp_at, radius_full, margin_px, prior.as_ref());
+                let found = self.search_from(&pyr, &at, fp_at, radius_full, margin_px, prior.as_ref(), false);
                 // A tile stands when its solution would (enough inliers, and
                 // a share of its matches); else the next tile is searched,
                 // and the strongest failure is what the frame reports.
@@ -1387,6 +1404,11 @@ impl<'a> Navigator<'a> {
     /// The coarse-to-fine search of one image around the pose `guess`
     /// (its footprint `fp`): a search radius of `radius_full` pixels, and
     /// with `margin_px` (an acquisition) the footprint widened by it.
+    /// `finer_acquisition`: an acquisition that fails on its coarse level
+    /// is searched again, over the same ground, one level finer (never at
+    /// full resolution): for the one search that covers the whole
+    /// uncertainty, not for each of many tiles.
+    #[allow(clippy::too_many_arguments)]
     fn search_from(
         &self,
         pyr: &Pyramid,
@@ -1395,6 +1417,7 @@ impl<'a> Navigator<'a> {
         radius_full: f64,
         margin_px: f64,
         prior: Option<&AttitudePrior>,
+        finer_acquisition: bool,
     ) -> Result<Solution, NoSolution> {
         let f = self.camera.fx.min(self.camera.fy);
         let fp = if margin_px > 0.0 {
@@ -1427,6 +1450,7 @@ impl<'a> Navigator<'a> {
         let mut pose = *guess;
         let mut radius = ((radius_full / (1u32 << k) as f64).ceil() as usize).max(4);
         let mut best: Option<Solution> = None;
+        let mut finer_left = finer_acquisition && margin_px > 0.0;
         // Coarse to fine: each level starts from the pose of the one above
         // when that one is trustworthy (enough inliers, attitude within the
         // gyro prior's gate); a weak coarse solution is not followed: the
@@ -1446,6 +1470,15 @@ impl<'a> Navigator<'a> {
                 // landmarks there (a repeated pattern: measured on the
                 // synthetic map's road grid, fixes 1.1-1.6 km off with 40-95
                 // inliers), and nothing tells it from the truth.
+                // Once, the next finer level searches the same ground again
+                // (twice the level pixels, twice the template's): an oblique
+                // low view's coarse level holds too few landmarks, too
+                // foreshortened, to acquire (README, acquisition).
+                Ok(_) | Err(_) if margin_px > 0.0 && best.is_none() && finer_left && level >= 2 => {
+                    debug!("level {level}: acquisition failed; searched again one level finer");
+                    finer_left = false;
+                    radius *= 2;
+                }
                 Ok(sol) if margin_px > 0.0 && best.is_none() => {
                     debug!("level {level}: acquisition failed ({} inliers)", sol.inliers);
                     return Err(NoSolution { matches: sol.n_matches, found: Vec::new() });
@@ -1978,7 +2011,29 @@ fn median(v: &mut [f64]) -> Option<f64> {
     Some(if n % 2 == 1 { v[n / 2] } else { 0.5 * (v[n / 2 - 1] + v[n / 2]) })
 }
 
-/// Every match of a solution (inliers or not) as found.
+/// Whether a frame's solution is held for the next frame to confirm (the
+/// next frame searches around it, and a fix there is the acquisition), and
+/// what the frame then reports:
+/// - an acquisition found in a tile away from the guess that passed every
+///   test: of the many places tiles try, one may alias (`Unconfirmed`);
+/// - an acquisition refused only for too narrow a view (`Spread`, kept): a
+///   guess ahead of an oblique camera predicts the landmarks of a part of its
+///   image only, and around the acquisition every landmark in view is
+///   predicted. Not when that search was itself around a held one: a frame
+///   spent confirming is not spent on tiles.
+fn held(
+    rejection: Option<Rejection>,
+    tile: Option<Vector2<f64>>,
+    acquisition: bool,
+    was_confirming: bool,
+) -> Option<Rejection> {
+    match (rejection, tile) {
+        (None, Some(t)) => Some(Rejection::Unconfirmed { tile_east_m: t.x, tile_north_m: t.y }),
+        (Some(r @ Rejection::Spread { .. }), _) if acquisition && !was_confirming => Some(r),
+        _ => None,
+    }
+}
+
 /// Where an acquisition searches (east, north offsets of the guess, m,
 /// nearest first, the guess itself first) when one search reaches `reach_m`
 /// around the guess and the uncertainty `need_m`: a square grid of
@@ -2010,6 +2065,7 @@ fn shifted_enu(p: &trn_geodesy::Ecef, offset: &Vector2<f64>) -> trn_geodesy::Ece
     trn_geodesy::Geodetic::new(moved.lat_deg, moved.lon_deg, g.h_m).to_ecef()
 }
 
+/// Every match of a solution (inliers or not) as found.
 fn matches_of(sol: &Solution) -> Vec<Match> {
     sol.records
         .iter()
@@ -2512,6 +2568,29 @@ mod tests {
         assert!(velocity_fit(&short).is_none());
         let two: std::collections::VecDeque<_> = [exact[0], exact[12]].into_iter().collect();
         assert!(velocity_fit(&two).is_none());
+    }
+
+    #[test]
+    fn a_tiles_acquisition_and_a_narrow_one_are_held_once() {
+        let tile = Some(Vector2::new(1734.0, 0.0));
+        let narrow = Some(Rejection::Spread { cells: 11, spread_px: 27.5 });
+        // A tile's acquisition that passed every test: held, unconfirmed.
+        assert_eq!(
+            held(None, tile, true, false),
+            Some(Rejection::Unconfirmed { tile_east_m: 1734.0, tile_north_m: 0.0 })
+        );
+        // One refused for another reason is not held.
+        let few = Some(Rejection::FewInliers { inliers: 5 });
+        assert_eq!(held(few, tile, true, false), None);
+        // An acquisition (tiled or not) refused only for too narrow a view:
+        // held, its refusal reported; not a frame's local search, and not
+        // the search around a held one.
+        assert_eq!(held(narrow, None, true, false), narrow);
+        assert_eq!(held(narrow, tile, true, false), narrow);
+        assert_eq!(held(narrow, None, false, false), None);
+        assert_eq!(held(narrow, None, true, true), None);
+        // A fix searched around the guess is no candidate.
+        assert_eq!(held(None, None, true, false), None);
     }
 
     #[test]

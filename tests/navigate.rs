@@ -344,10 +344,10 @@ fn a_low_camera_acquires_from_1_5_and_5_km() {
     let s = NavFixture { flight: far, ..s };
     acquires(&s, &s.root().join("poses-5km.csv"), &["--init-sigma-m", "5000"], 5, 0.5);
     // The low pass (640x480, 60 deg, 50 deg forward, flying east) with its
-    // guess 2 km north, across its line of sight: its 160x120 level holds
-    // too few landmarks, too foreshortened (6 matches, 5 inliers), and the
-    // acquisition searches the same ground again on the 320x240 one. (Before
-    // that it fixed only after ~100 frames, when a tile caught the truth.)
+    // guess 2 km north, across its line of sight: its 160x120 level's
+    // templates span 0.25 rad, warped wrong from so far off (6 matches, 5
+    // inliers), and the acquisition searches its 320x240 level. (On the
+    // coarse level it fixed only after ~100 frames, when a tile caught it.)
     let low = realistic_sim(dir.path(), "sierra-low-pass", 300.0, "2", "low-pass");
     move_guess(&low, 0.0, 2000.0);
     let s = NavFixture { flight: low, ..s };

@@ -472,9 +472,21 @@ const DOUBT_MAX_POSITION_M: f64 = 20_000.0;
 /// 160x120 level acquires both; the 200x150 rocket acquires 2 km off on its
 /// 100x75 level, and at full resolution (16 px templates searched over the
 /// whole image) it found aliases up to 491 m off; the 1024x768 balloons
-/// acquire 10 km off on their 128x96 level. (A single acquisition that fails
-/// there searches again one level finer: see [`Navigator::search_from`].)
+/// acquire 10 km off on their 128x96 level.
 const MIN_ACQUISITION_SIDE_PX: usize = 72;
+
+/// Widest angle (rad: the ground size of the level's templates over the
+/// range at the image's centre) an acquisition's templates may span: a
+/// template is warped into the image as seen from the guess, and the wider
+/// the angle it spans the more a guess kilometres off warps it wrong (most
+/// in a low oblique view over relief). Coarser levels than that are not
+/// searched, down to the first above full resolution. Measured (README,
+/// acquisition): the low pass's 160x120 level (1.9 km templates at 7.6 km,
+/// 0.25) matched 6 of 76 landmarks a guess 2 km off beside its track, its
+/// 320x240 level (0.13) 44 of 177 and fixed, and from 5 and 10 km in tiles
+/// at frames 1-4 where the coarse level took ~100; the levels the nadir
+/// balloons (0.13) and the 640x480 rocket (0.14) acquire on are kept.
+const ACQUISITION_MAX_TEMPLATE_ANGLE: f64 = 0.2;
 /// Huber threshold (px) of the self-calibration's residuals, as the
 /// full-resolution refinement's.
 const HUBER_PX: f64 = 1.0;
@@ -1318,7 +1330,7 @@ impl<'a> Navigator<'a> {
             Vec::new()
         };
         let outcome = if tiles.is_empty() {
-            self.search_from(&pyr, guess, fp, radius_full, margin_px, prior.as_ref(), true)
+            self.search_from(&pyr, guess, fp, radius_full, margin_px, prior.as_ref())
         } else {
             let first = self.acquisition_cursor % tiles.len();
             let count = self.params.acquisition_tiles.min(tiles.len());
@@ -1335,7 +1347,7 @@ impl<'a> Navigator<'a> {
                     o => CameraPose { position: shifted_enu(&guess.position, o), ..*guess },
                 };
                 let Ok(fp_at) = self.footprint_at(&at) else { continue };
-                let found = self.search_from(&pyr, &at, fp_at, radius_full, margin_px, prior.as_ref(), false);
+                let found = self.search_from(&pyr, &at, fp_at, radius_full, margin_px, prior.as_ref());
                 // A tile stands when its solution would (enough inliers, and
                 // a share of its matches); else the next tile is searched,
                 // and the strongest failure is what the frame reports.
@@ -1404,11 +1416,6 @@ impl<'a> Navigator<'a> {
     /// The coarse-to-fine search of one image around the pose `guess`
     /// (its footprint `fp`): a search radius of `radius_full` pixels, and
     /// with `margin_px` (an acquisition) the footprint widened by it.
-    /// `finer_acquisition`: an acquisition that fails on its coarse level
-    /// is searched again, over the same ground, one level finer (never at
-    /// full resolution): for the one search that covers the whole
-    /// uncertainty, not for each of many tiles.
-    #[allow(clippy::too_many_arguments)]
     fn search_from(
         &self,
         pyr: &Pyramid,
@@ -1417,7 +1424,6 @@ impl<'a> Navigator<'a> {
         radius_full: f64,
         margin_px: f64,
         prior: Option<&AttitudePrior>,
-        finer_acquisition: bool,
     ) -> Result<Solution, NoSolution> {
         let f = self.camera.fx.min(self.camera.fy);
         let fp = if margin_px > 0.0 {
@@ -1447,10 +1453,16 @@ impl<'a> Navigator<'a> {
         {
             k -= 1;
         }
+        // Nor on one whose templates span too wide an angle of the view to be
+        // warped right from a guess kilometres off (above full resolution).
+        let template_angle =
+            |k: usize| self.level_for(fp.center_gsd_m * (1u32 << k) as f64).footprint_m / fp.center_range_m;
+        while margin_px > 0.0 && k > 1 && template_angle(k) > ACQUISITION_MAX_TEMPLATE_ANGLE {
+            k -= 1;
+        }
         let mut pose = *guess;
         let mut radius = ((radius_full / (1u32 << k) as f64).ceil() as usize).max(4);
         let mut best: Option<Solution> = None;
-        let mut finer_left = finer_acquisition && margin_px > 0.0;
         // Coarse to fine: each level starts from the pose of the one above
         // when that one is trustworthy (enough inliers, attitude within the
         // gyro prior's gate); a weak coarse solution is not followed: the
@@ -1470,15 +1482,6 @@ impl<'a> Navigator<'a> {
                 // landmarks there (a repeated pattern: measured on the
                 // synthetic map's road grid, fixes 1.1-1.6 km off with 40-95
                 // inliers), and nothing tells it from the truth.
-                // Once, the next finer level searches the same ground again
-                // (twice the level pixels, twice the template's): an oblique
-                // low view's coarse level holds too few landmarks, too
-                // foreshortened, to acquire (README, acquisition).
-                Ok(_) | Err(_) if margin_px > 0.0 && best.is_none() && finer_left && level >= 2 => {
-                    debug!("level {level}: acquisition failed; searched again one level finer");
-                    finer_left = false;
-                    radius *= 2;
-                }
                 Ok(sol) if margin_px > 0.0 && best.is_none() => {
                     debug!("level {level}: acquisition failed ({} inliers)", sol.inliers);
                     return Err(NoSolution { matches: sol.n_matches, found: Vec::new() });

@@ -662,15 +662,11 @@ impl InsFilter {
     /// Scales the uncertainty of attitude and position only by `factor`
     /// (the velocity's is left): what the filter does when the images have
     /// not yet confirmed an initial guess, which says nothing of velocity.
-    pub fn inflate_pose(&mut self, factor: f64) {
-        self.scale_sigmas(ATT..POS + 3, factor);
-    }
-
-    /// [`Self::inflate_pose`], each of the attitude and the position by at
-    /// most what takes its largest sigma (on any axis) to `max_attitude_rad`
-    /// / `max_position_m` (never shrinking one already beyond): a doubt
-    /// that grows frame by frame stays bounded where a search no longer
-    /// gains from it. Returns the factors applied (attitude, position).
+    /// Each of the two by at most what takes its largest sigma (on any axis)
+    /// to `max_attitude_rad` / `max_position_m` (never shrinking one already
+    /// beyond): a doubt that grows frame by frame stays bounded where a
+    /// search no longer gains from it. Returns the factors applied
+    /// (attitude, position).
     pub fn inflate_pose_within(
         &mut self,
         factor: f64,
@@ -679,6 +675,8 @@ impl InsFilter {
     ) -> (f64, f64) {
         let worst =
             |s: &Self, at: usize| (at..at + 3).map(|i| s.covariance[(i, i)]).fold(0.0, f64::max).sqrt();
+        // (A factor under 1 scales nothing: a doubt only grows.)
+        let factor = factor.max(1.0);
         let bounded =
             |sigma: f64, max: f64| if sigma > 0.0 { (max / sigma).clamp(1.0, factor) } else { factor };
         let k_att = bounded(worst(self, ATT), max_attitude_rad);
@@ -1220,7 +1218,7 @@ mod tests {
         // Frames of doubt: the pose's sigmas doubled 20 times, carried by
         // the propagation into the velocity's.
         for k in 1..=20 {
-            f.inflate_pose(2.0);
+            f.inflate_pose_within(2.0, f64::INFINITY, f64::INFINITY);
             f.propagate(0.5 * k as f64, &imu);
         }
         let worst = (VEL..VEL + 3).map(|i| f.covariance[(i, i)].sqrt()).fold(0.0, f64::max);
@@ -1289,7 +1287,7 @@ mod tests {
         // the pose scale once.
         let mut g = f.clone();
         let inflated = f.covariance;
-        g.inflate_pose(3.0);
+        g.inflate_pose_within(3.0, f64::INFINITY, f64::INFINITY);
         assert!(
             (g.covariance[(ATT + 1, ATT + 1)] - 9.0 * inflated[(ATT + 1, ATT + 1)]).abs()
                 < 1e-9 * inflated[(ATT + 1, ATT + 1)]

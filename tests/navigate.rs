@@ -361,13 +361,20 @@ fn move_guess(flight: &Path, east_m: f64, north_m: f64) {
     let first: Vec<f64> =
         truth.lines().nth(1).unwrap().split(',').take(3).map(|x| x.parse().unwrap()).collect();
     let (lat, lon) = (first[1], first[2]);
+    // Metres on a local sphere: accurate to metres over 2 km.
+    let r = 6_371_000.0;
+    edit_init(flight, |init| {
+        init["lat"] = serde_json::json!(lat + (north_m / r).to_degrees());
+        init["lon"] = serde_json::json!(lon + (east_m / (r * lat.to_radians().cos())).to_degrees());
+    });
+}
+
+/// `flight`'s `init.json` changed in place by `edit`.
+fn edit_init(flight: &Path, edit: impl FnOnce(&mut serde_json::Value)) {
     let init_path = flight.join("init.json");
     let mut init: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&init_path).unwrap()).unwrap();
-    // Metres on a local sphere: accurate to metres over 2 km.
-    let r = 6_371_000.0;
-    init["lat"] = serde_json::json!(lat + (north_m / r).to_degrees());
-    init["lon"] = serde_json::json!(lon + (east_m / (r * lat.to_radians().cos())).to_degrees());
+    edit(&mut init);
     std::fs::write(&init_path, init.to_string()).unwrap();
 }
 
@@ -467,11 +474,7 @@ fn with_init(
     let dir = s.root().join(name);
     let flight = dir.join("flight");
     copy_flight(&s.flight, &flight);
-    let init_path = flight.join("init.json");
-    let mut init: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&init_path).unwrap()).unwrap();
-    edit(&mut init);
-    std::fs::write(&init_path, init.to_string()).unwrap();
+    edit_init(&flight, edit);
     (dir, flight)
 }
 

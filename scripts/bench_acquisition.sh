@@ -86,7 +86,7 @@ for r in rows:
     share = e["status"]["share_fix"]
     fe = e["fix_errors"]["pos_m"] if share > 0 else None
     rj = rep["rejected"]
-    rej = f"{rj['few_inliers']} few inliers, {rj['inlier_share']} low share, {rj['height']} height, {rj.get('unconfirmed', 0)} held"
+    rej = f"{rj['few_inliers']} few inliers, {rj['inlier_share']} low share, {rj['height']} height, {rj.get('unconfirmed', 0) + rj.get('narrow_held', 0)} held"
     ms0 = float(poses[0]["ms"]) if poses else float("nan")
     head = f"| {d} | {att} | {sigma} | {sdeg} |"
     lines.append(f"{head} {share*100:.0f}% | {'-' if first is None else first} | "

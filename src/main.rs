@@ -294,12 +294,13 @@ struct NavigateArgs {
     /// Landmarks correlated per image.
     #[arg(long, default_value_t = 300)]
     max_landmarks: usize,
-    /// Tiles an acquisition searches per frame when the guess's uncertainty
-    /// is wider than one search reaches (a low camera kilometres off):
-    /// nearest first, a few per frame, so a lost frame costs at most this
-    /// many acquisition searches.
-    #[arg(long, default_value_t = 4)]
-    acquisition_tiles: usize,
+    /// Correlation work per lost frame (G multiply-adds, a template's warp
+    /// counting 0.01) when the guess's uncertainty is wider than one search
+    /// reaches (a low camera kilometres off): tiles around the guess are
+    /// searched nearest first until it is spent. 30 is about a second on one
+    /// core.
+    #[arg(long, default_value_t = 30.0)]
+    acquisition_budget: f64,
     /// Position uncertainty of init.json (m, 1 sigma): the first search's radius
     /// and the first fix's height check.
     #[arg(long, default_value_t = 300.0)]
@@ -670,7 +671,7 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
     params.min_inlier_share = a.min_inlier_share;
     params.max_height_jump_m = a.max_height_jump;
     params.max_landmarks = a.max_landmarks;
-    params.acquisition_tiles = a.acquisition_tiles;
+    params.acquisition_budget_g = a.acquisition_budget;
     params.init_sigma_m = a.init_sigma_m;
     params.init_sigma_deg = a.init_sigma_deg;
     params.filter = match a.filter {

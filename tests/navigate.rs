@@ -332,8 +332,9 @@ fn acquires_from_5_km_on_real_relief() {
 /// one (two coarse templates across) it never fixed, whichever way the
 /// guess was off (README, acquisition). Then 5 km off (twice what one
 /// search reaches at that height): the acquisition searches in tiles,
-/// four a frame, nearest first, and the next frame confirms it. Last, a
-/// low oblique view 2 km off across its line of sight.
+/// nearest first, as many a frame as its work budget allows, and the next
+/// frame confirms it. Then a low oblique view 2 km off across its line of
+/// sight, and a small camera 10 km off.
 #[test]
 fn a_low_camera_acquires_from_1_5_and_5_km() {
     let dir = tempfile::tempdir().unwrap();
@@ -352,6 +353,12 @@ fn a_low_camera_acquires_from_1_5_and_5_km() {
     move_guess(&low, 0.0, 2000.0);
     let s = NavFixture { flight: low, ..s };
     acquires(&s, &s.root().join("poses-low.csv"), &["--init-sigma-m", "2000"], 1, 0.6);
+    // The 200x150 rocket 10 km off, told: ~100 of its 1.7 km tiles lie
+    // nearer the guess than the truth. Four a frame never reached it in the
+    // flight; a frame's work budget (`--acquisition-budget`) searches ~15.
+    let small = realistic_sim(dir.path(), "sierra-rocket-200x150", 10000.0, "5", "small-10km");
+    let s = NavFixture { flight: small, ..s };
+    acquires(&s, &s.root().join("poses-small.csv"), &["--init-sigma-m", "10000"], 8, 0.25);
 }
 
 /// Moves `flight`'s initial guess to `east_m`, `north_m` from its first true
@@ -404,7 +411,7 @@ fn bad_inputs_are_named() {
         ("--alpha-max", "90"),
         ("--min-inliers", "3"),
         ("--max-landmarks", "2"),
-        ("--acquisition-tiles", "0"),
+        ("--acquisition-budget", "0"),
         ("--init-sigma-m", "0"),
         ("--min-inlier-share", "1.5"),
         ("--init-sigma-deg", "inf"),

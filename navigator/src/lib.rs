@@ -99,8 +99,8 @@ impl RunOptions {
         if p.max_landmarks < 4 {
             return bad("--max-landmarks", "must be at least 4");
         }
-        if p.acquisition_tiles == 0 {
-            return bad("--acquisition-tiles", "must be at least 1");
+        if !positive(p.acquisition_budget_g) {
+            return bad("--acquisition-budget", "must be G multiply-adds > 0");
         }
         if !positive(p.init_sigma_m) {
             return bad("--init-sigma-m", "must be metres > 0");
@@ -261,6 +261,10 @@ pub struct RejectedCounts {
     /// Acquisitions found in a tile away from the guess, held until the
     /// next frame confirms them.
     pub unconfirmed: usize,
+    /// Acquisitions whose inliers held too narrow a view (not counted in
+    /// `spread`), held until the next frame, searched around them, confirms
+    /// them.
+    pub narrow_held: usize,
 }
 
 /// Reads a flight image as grey levels (RGB by Rec. 601 luma).
@@ -371,6 +375,7 @@ pub fn run_flight(
         match r.rejection {
             Some(Rejection::FewInliers { .. }) => rejected.few_inliers += 1,
             Some(Rejection::InlierShare { .. }) => rejected.inlier_share += 1,
+            Some(Rejection::Spread { .. }) if r.held => rejected.narrow_held += 1,
             Some(Rejection::Spread { .. }) => rejected.spread += 1,
             Some(Rejection::Height { .. }) => rejected.height += 1,
             Some(Rejection::Inconsistent { .. }) => rejected.inconsistent += 1,

@@ -81,11 +81,14 @@ pub struct NavParams {
     pub max_height_jump_m: f64,
     /// Landmarks correlated per frame (spread over the image).
     pub max_landmarks: usize,
-    /// Tiles an acquisition searches per frame when the uncertainty is wider
-    /// than one search reaches (a low camera kilometres off; see
-    /// [`acquisition_tiles`]): the cost of a lost frame is at most this many
-    /// acquisition searches.
-    pub acquisition_tiles: usize,
+    /// Correlation work a frame spends on an acquisition searched in tiles
+    /// (the uncertainty wider than one search reaches: a low camera
+    /// kilometres off; see [`acquisition_tiles`]), in G multiply-adds, a
+    /// template's prediction counting [`TEMPLATE_WORK`]: tiles are searched
+    /// until it is spent (at least one, each at most once a frame), so a lost
+    /// frame costs about the same whatever the camera, and tiles without
+    /// landmarks cost nothing.
+    pub acquisition_budget_g: f64,
     /// Image cells (across x down) the landmarks are spread over.
     pub grid: (usize, usize),
     /// RANSAC inlier threshold at full resolution (px).
@@ -179,7 +182,7 @@ impl Default for NavParams {
             min_inlier_spread: 0.08,
             max_height_jump_m: 450.0,
             max_landmarks: 300,
-            acquisition_tiles: 4,
+            acquisition_budget_g: 30.0,
             grid: (8, 6),
             ransac_threshold_px: 2.0,
             ncc: NccParams { min_peak: 0.5, max_second_ratio: 0.92, min_template_std: 2.0 },
@@ -228,6 +231,10 @@ pub struct FrameResult {
     pub covariance: Option<PoseCovariance>,
     /// Why the frame's solution was not accepted (its pose is then carried).
     pub rejection: Option<Rejection>,
+    /// The solution is an acquisition held for the next frame to confirm
+    /// (a tile's, [`Rejection::Unconfirmed`], or one refused only for too
+    /// narrow a view, [`Rejection::Spread`]).
+    pub held: bool,
     /// Matches of a frame without a fix that updated the inertial filter
     /// through its prediction ([`NavParams::prior_gated_update`]; 0: none).
     pub gated_matches: usize,
@@ -368,6 +375,9 @@ pub struct Navigator<'a> {
     acquisition_cursor: usize,
     /// A tiled acquisition the next frame is to confirm.
     candidate: Option<Candidate>,
+    /// Correlation work done (template pixels times search positions) since
+    /// the counter was last read ([`Self::take_work`]).
+    work: std::cell::Cell<u64>,
 }
 
 /// An acquisition found in a tile away from the guess, held for the next
@@ -450,6 +460,10 @@ const ACQUISITION_RADIUS_F: f64 = 0.5;
 /// footprint widened by the image's size): a guess that far off diagonally
 /// is still found.
 const ACQUISITION_TILE_SPACING: f64 = 0.7;
+/// The work of predicting one template (its warp through the terrain), in
+/// correlation multiply-adds: measured, ~0.3 ms a template against ~30 ms
+/// per G multiply-adds on one core (AVX2), on the rockets' tiles.
+pub const TEMPLATE_WORK: u64 = 10_000_000;
 /// Most tiles an acquisition lays out.
 const ACQUISITION_MAX_TILES: usize = 400;
 
@@ -631,6 +645,7 @@ impl<'a> Navigator<'a> {
             guess_doubted: false,
             map_sized: false,
             acquisition_cursor: 0,
+            work: Default::default(),
             candidate: None,
         })
     }
@@ -1052,6 +1067,7 @@ impl<'a> Navigator<'a> {
         let tracked = if acquisition { 0 } else { self.track_update(t, &mut pred.filter, &current) };
         let mut covariance = None;
         let mut rejected = None;
+        let mut was_held = false;
         let mut gated_matches = 0;
         let (status, inliers, n_matches, matches, guess_px) = match outcome {
             Ok(mut sol) => {
@@ -1072,6 +1088,7 @@ impl<'a> Navigator<'a> {
                     let sigma_m = sol.position_covariance().trace().sqrt();
                     self.candidate = Some(Candidate { t, pose: sol.pose, sigma_m });
                     rejection = Some(reported);
+                    was_held = true;
                 }
                 let frame = if rejection.is_none() { self.calibration_frame(&sol) } else { None };
                 // An acquisition searched the whole prior: nothing to test
@@ -1150,6 +1167,7 @@ impl<'a> Navigator<'a> {
             guess_px,
             covariance,
             rejection: rejected,
+            held: was_held,
             gated_matches,
             tracked,
         }
@@ -1332,22 +1350,38 @@ impl<'a> Navigator<'a> {
         let outcome = if tiles.is_empty() {
             self.search_from(&pyr, guess, fp, radius_full, margin_px, prior.as_ref())
         } else {
-            let first = self.acquisition_cursor % tiles.len();
-            let count = self.params.acquisition_tiles.min(tiles.len());
-            self.acquisition_cursor = first + self.params.acquisition_tiles;
+            let mut walk =
+                TileWalk::new(self.acquisition_cursor, tiles.len(), self.params.acquisition_budget_g * 1e9);
             debug!(
-                "t {t:.3}: acquisition in {} tiles of {:.0} m: {first}.. this frame",
+                "t {t:.3}: acquisition in {} tiles of {:.0} m: {}.. this frame",
                 tiles.len(),
-                ACQUISITION_TILE_SPACING * margin_px / f * fp.center_range_m
+                ACQUISITION_TILE_SPACING * margin_px / f * fp.center_range_m,
+                walk.next
             );
             let mut outcome = Err(NoSolution::default());
-            for offset in tiles.iter().cycle().skip(first).take(count) {
+            while let Some(i) = walk.next_tile() {
+                self.acquisition_cursor = walk.next;
+                let offset = &tiles[i];
                 let at = match offset {
                     o if *o == Vector2::zeros() => *guess,
                     o => CameraPose { position: shifted_enu(&guess.position, o), ..*guess },
                 };
                 let Ok(fp_at) = self.footprint_at(&at) else { continue };
+                let clock = std::time::Instant::now();
+                self.work.set(0);
                 let found = self.search_from(&pyr, &at, fp_at, radius_full, margin_px, prior.as_ref());
+                walk.spend(self.work.get() as f64);
+                debug!(
+                    "t {t:.3}: tile {:.0} E {:.0} N: {:.3} G multiply-adds, {:.0} ms, {}",
+                    offset.x,
+                    offset.y,
+                    self.work.get() as f64 * 1e-9,
+                    clock.elapsed().as_secs_f64() * 1e3,
+                    match &found {
+                        Ok(s) => format!("{} inliers", s.inliers),
+                        Err(e) => format!("{} matches", e.matches),
+                    }
+                );
                 // A tile stands when its solution would (enough inliers, and
                 // a share of its matches); else the next tile is searched,
                 // and the strongest failure is what the frame reports.
@@ -1551,6 +1585,7 @@ impl<'a> Navigator<'a> {
             )
         });
         let chosen = self.spread(&templates, pose, scale, margin_px);
+        self.work.set(self.work.get() + chosen.len() as u64 * TEMPLATE_WORK);
         let img = &pyr.levels[level];
         let view = ImageView::new(img.width, img.height, &img.data);
         let predicted: Vec<Predicted> = chosen
@@ -1563,6 +1598,7 @@ impl<'a> Navigator<'a> {
             .iter()
             .filter_map(|p| {
                 let (u0, v0) = (p.patch_center.u, p.patch_center.v);
+                self.work.set(self.work.get() + correlation_work(p.patch.width, p.patch.height, radius, img));
                 let m = ncc::match_template(&view, &p.patch, u0, v0, radius, &self.params.ncc).ok()?;
                 Some(Match {
                     pixel: p.observed_center(Pixel::new(m.u, m.v)),
@@ -2058,6 +2094,51 @@ fn acquisition_tiles(reach_m: f64, need_m: f64) -> Vec<Vector2<f64>> {
     tiles.sort_by(|a, b| a.norm().total_cmp(&b.norm()).then(a.x.total_cmp(&b.x)).then(a.y.total_cmp(&b.y)));
     tiles.truncate(ACQUISITION_MAX_TILES);
     tiles
+}
+
+/// Multiply-adds of one template's correlation (`width` x `height` pixels,
+/// searched within `radius` px of its prediction in `image`): its pixels
+/// times the positions of a window that size inside the image (those of a
+/// window cut by the image's border, at most).
+fn correlation_work(width: usize, height: usize, radius: usize, image: &GreyImage) -> u64 {
+    let side = 2 * radius as u64 + 1;
+    let nx = side.min((image.width + 1).saturating_sub(width) as u64);
+    let ny = side.min((image.height + 1).saturating_sub(height) as u64);
+    (width * height) as u64 * nx * ny
+}
+
+/// The tiles one frame searches: from the cursor `next` on (wrapping), until
+/// `budget` work is spent; at least one tile, none twice.
+#[derive(Clone, Copy, Debug)]
+struct TileWalk {
+    /// The next tile's index.
+    next: usize,
+    len: usize,
+    searched: usize,
+    spent: f64,
+    budget: f64,
+}
+
+impl TileWalk {
+    fn new(cursor: usize, len: usize, budget: f64) -> TileWalk {
+        TileWalk { next: if len == 0 { 0 } else { cursor % len }, len, searched: 0, spent: 0.0, budget }
+    }
+
+    /// The index of the next tile to search, if the frame has work left.
+    fn next_tile(&mut self) -> Option<usize> {
+        if self.searched == self.len || (self.searched > 0 && self.spent >= self.budget) {
+            return None;
+        }
+        let i = self.next;
+        self.next = (i + 1) % self.len;
+        self.searched += 1;
+        Some(i)
+    }
+
+    /// Counts the work the last tile's search took.
+    fn spend(&mut self, work: f64) {
+        self.spent += work;
+    }
 }
 
 /// `p` moved by `offset` (east, north; m) in its local level frame.
@@ -2571,6 +2652,52 @@ mod tests {
         assert!(velocity_fit(&short).is_none());
         let two: std::collections::VecDeque<_> = [exact[0], exact[12]].into_iter().collect();
         assert!(velocity_fit(&two).is_none());
+    }
+
+    #[test]
+    fn a_frame_searches_tiles_until_its_budget_is_spent() {
+        // Each tile's work; tiles 2 and 3 are off the map (no work).
+        let work = [4.0, 7.0, 0.0, 0.0, 5.0, 30.0, 1.0];
+        let frame = |cursor: usize, budget: f64| {
+            let mut walk = TileWalk::new(cursor, work.len(), budget);
+            let mut seen = Vec::new();
+            while let Some(i) = walk.next_tile() {
+                seen.push(i);
+                walk.spend(work[i]);
+            }
+            (seen, walk.next)
+        };
+        // The tile that crosses the budget is finished; empty tiles are free.
+        assert_eq!(frame(0, 10.0), (vec![0, 1], 2));
+        assert_eq!(frame(2, 10.0), (vec![2, 3, 4, 5], 6));
+        // At least one tile, however small the budget.
+        assert_eq!(frame(5, 1e-9), (vec![5], 6));
+        // Wrapping from the cursor, never a tile twice in a frame.
+        assert_eq!(frame(6, 8.0), (vec![6, 0, 1], 2));
+        assert_eq!(frame(3, 1e9), (vec![3, 4, 5, 6, 0, 1, 2], 3));
+        // A cursor past the end wraps; no tiles, no search.
+        assert_eq!(frame(9, 10.0).0, vec![2, 3, 4, 5]);
+        assert_eq!(TileWalk::new(4, 0, 10.0).next_tile(), None);
+    }
+
+    #[test]
+    fn correlation_work_counts_the_positions_inside_the_image() {
+        let image = GreyImage { width: 200, height: 150, data: vec![0.0; 200 * 150] };
+        // Brute force: template pixels times the placements within the
+        // radius (around the image centre) that keep it inside the image.
+        let brute = |w: usize, h: usize, r: usize| {
+            let (cx, cy) = ((200 - w) as i64 / 2, (150 - h) as i64 / 2);
+            let r = r as i64;
+            let inside = |c: i64, side: usize, len: usize| {
+                (c - r..=c + r).filter(|&x| x >= 0 && x as usize + side <= len).count()
+            };
+            (w * h * inside(cx, w, 200) * inside(cy, h, 150)) as u64
+        };
+        for (w, h, r) in [(21, 21, 5), (21, 21, 60), (21, 21, 500), (63, 40, 90), (200, 150, 3)] {
+            assert_eq!(correlation_work(w, h, r, &image), brute(w, h, r), "{w}x{h} r {r}");
+        }
+        // A template larger than the image has no position.
+        assert_eq!(correlation_work(201, 10, 4, &image), 0);
     }
 
     #[test]

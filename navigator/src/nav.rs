@@ -464,6 +464,11 @@ const ACQUISITION_TILE_SPACING: f64 = 0.7;
 /// correlation multiply-adds: measured, ~0.3 ms a template against ~30 ms
 /// per G multiply-adds on one core (AVX2), on the rockets' tiles.
 pub const TEMPLATE_WORK: u64 = 10_000_000;
+/// The most work one acquisition search correlates, in frame budgets
+/// ([`NavParams::acquisition_budget_g`]). One budget cut the oblique
+/// balloon's own search (~105 G on its 512x384 level) to a third of its
+/// templates, and it no longer acquired 3 km off.
+const SEARCH_BUDGETS: f64 = 4.0;
 /// Most tiles an acquisition lays out.
 const ACQUISITION_MAX_TILES: usize = 400;
 
@@ -1595,13 +1600,13 @@ impl<'a> Navigator<'a> {
             })
             .collect();
         // An acquisition correlates its templates (spread over the image, the
-        // best of each cell first) up to a frame's work budget: one search of
-        // a 1024x768 oblique view over its whole image at full resolution had
-        // taken 811 G multiply-adds, 8 s.
+        // best of each cell first) up to [`SEARCH_BUDGETS`] of a frame's work
+        // budget: one search of a 1024x768 oblique view over its whole image
+        // at full resolution had taken 811 G multiply-adds, 8 s.
         let works: Vec<u64> =
             predicted.iter().map(|p| correlation_work(p.patch.width, p.patch.height, radius, img)).collect();
         let searched = if margin_px > 0.0 {
-            within_budget(&works, self.params.acquisition_budget_g * 1e9)
+            within_budget(&works, SEARCH_BUDGETS * self.params.acquisition_budget_g * 1e9)
         } else {
             works.len()
         };

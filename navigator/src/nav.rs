@@ -87,7 +87,8 @@ pub struct NavParams {
     /// template's prediction counting [`TEMPLATE_WORK`]: tiles are searched
     /// until it is spent (at least one, each at most once a frame), so a lost
     /// frame costs about the same whatever the camera, and tiles without
-    /// landmarks cost nothing.
+    /// landmarks cost nothing. One acquisition search correlates at most
+    /// [`SEARCH_BUDGETS`] of it.
     pub acquisition_budget_g: f64,
     /// Image cells (across x down) the landmarks are spread over.
     pub grid: (usize, usize),
@@ -375,8 +376,9 @@ pub struct Navigator<'a> {
     acquisition_cursor: usize,
     /// A tiled acquisition the next frame is to confirm.
     candidate: Option<Candidate>,
-    /// Correlation work done (template pixels times search positions) since
-    /// the counter was last read ([`Self::take_work`]).
+    /// Correlation work done (template pixels times search positions, and
+    /// [`TEMPLATE_WORK`] a template predicted) since the tile loop of
+    /// [`Self::solve`] last reset it.
     work: std::cell::Cell<u64>,
 }
 

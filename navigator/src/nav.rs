@@ -1286,7 +1286,15 @@ impl<'a> Navigator<'a> {
             }
             None => (self.init_h, None),
         };
-        let v_sigma = self.velocity_sigma.unwrap_or(self.params.velocity_sigma_m_s);
+        // Before a velocity is known: with the inertial filter, the speed its
+        // initial guess allows (the first fix of a rocket climbing 230 m/s,
+        // 13 s after a guess 10 km off, is 2.9 km above it: at 20 m/s the
+        // gate refused it, and every later one); without it, the fixes'.
+        let unknown_v = match self.ins {
+            Some(_) => self.params.init_velocity_sigma_m_s,
+            None => self.params.velocity_sigma_m_s,
+        };
+        let v_sigma = self.velocity_sigma.unwrap_or(unknown_v);
         HeightGate::new(reference, t, v_up, v_sigma, self.params.max_height_jump_m)
     }
 

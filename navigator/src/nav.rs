@@ -1355,7 +1355,7 @@ impl<'a> Navigator<'a> {
         let radius_full = if acquisition { wanted.min(w.max(h)) } else { wanted.min(f * 0.25) };
         let margin_px = if acquisition { radius_full } else { 0.0 };
         // An uncertainty wider than one search reaches (a low camera
-        // kilometres off) is searched in tiles, a few per frame.
+        // kilometres off) is searched in tiles, as many a frame as its work budget allows.
         let tiles = if acquisition {
             let reach_m = margin_px / f * fp.center_range_m;
             acquisition_tiles(reach_m, wanted / f * fp.center_range_m)

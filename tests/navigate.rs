@@ -336,6 +336,16 @@ fn acquires_from_5_km_on_real_relief() {
     // Not told (the default 300 m): the inertial filter's velocity doubt
     // widens the search until it acquires.
     acquires(&s, &s.root().join("poses-untold.csv"), &[], 9, 0.0);
+    // A high oblique view (the balloon at 20 km, 62 deg of incidence at the
+    // image's centre, 40 km away) 6 km off, told. Searched over its whole
+    // 512x384 level from so far, 32 of 300 templates matched and 5 agreed, at
+    // every frame (the first fix came at frame 96); its narrow tiles, as far
+    // apart as a template's warp stands, searched every other frame from the
+    // second, acquire it (its first fix at frame 5 here).
+    let oblique = realistic_sim(dir.path(), "sierra-balloon-oblique", 300.0, "5", "oblique-6km");
+    move_guess(&oblique, 0.0, 6000.0);
+    let s = NavFixture { flight: oblique, ..s };
+    acquires(&s, &s.root().join("poses-oblique.csv"), &["--init-sigma-m", "6000"], 6, 0.4);
 }
 
 /// A low camera's acquisition: the realistic 640x480 rocket (40 deg, 3.5 km

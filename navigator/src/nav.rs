@@ -374,6 +374,14 @@ pub struct Navigator<'a> {
     /// The next tile of an acquisition searched in tiles
     /// ([`acquisition_tiles`]).
     acquisition_cursor: usize,
+    /// The next tile of the narrow layout ([`Navigator::narrow_layout`]).
+    narrow_cursor: usize,
+    /// Whether the acquisition's wide layout has been searched once over
+    /// since the last fix (all its tiles, or its one search): lost frames
+    /// then alternate between it and the narrow layout, narrow first.
+    wide_searched: bool,
+    /// Frames of that alternation so far.
+    alternation: usize,
     /// A tiled acquisition the next frame is to confirm.
     candidate: Option<Candidate>,
     /// Correlation work done (template pixels times search positions, and
@@ -471,6 +479,18 @@ pub const TEMPLATE_WORK: u64 = 10_000_000;
 /// balloon's own search (~105 G on its 512x384 level) to a third of its
 /// templates, and it no longer acquired 3 km off.
 const SEARCH_BUDGETS: f64 = 4.0;
+/// Most positions (at the level it starts on) a wide acquisition search may
+/// correlate each template over before lost frames alternate with the
+/// narrow layout ([`Navigator::narrow_layout`]). Measured (README,
+/// acquisition): whole-image searches of 7 500-77 000 positions acquire the
+/// rockets, the nadir balloons and the low pass; the oblique balloon's
+/// 512x384 level, ~180 000 (radius 233) from a guess 6 km off, matched 32
+/// of 300 templates, 5 consistent, at every frame.
+const MAX_ACQUISITION_POSITIONS: u64 = 100_000;
+/// Largest change of a template's foreshortening (relative, along the line
+/// of sight) between the pose an acquisition's narrow tile warps it from
+/// and the truth ([`Navigator::narrow_layout`]).
+const ACQUISITION_MAX_FORESHORTENING: f64 = 0.2;
 /// Most tiles an acquisition lays out.
 const ACQUISITION_MAX_TILES: usize = 400;
 
@@ -652,6 +672,9 @@ impl<'a> Navigator<'a> {
             guess_doubted: false,
             map_sized: false,
             acquisition_cursor: 0,
+            narrow_cursor: 0,
+            wide_searched: false,
+            alternation: 0,
             work: Default::default(),
             candidate: None,
         })
@@ -1115,6 +1138,9 @@ impl<'a> Navigator<'a> {
                     // A later acquisition in tiles starts from the nearest
                     // (one that failed its confirmation goes on from there).
                     self.acquisition_cursor = 0;
+                    self.narrow_cursor = 0;
+                    self.wide_searched = false;
+                    self.alternation = 0;
                     let ecef = match pred.filter {
                         Carried::Ins(f) => self.accept_ins(t, f, &sol, calibration_cov, &focal),
                         Carried::Attitude(attitude) => {
@@ -1352,30 +1378,54 @@ impl<'a> Navigator<'a> {
         let (w, h) = (self.camera.width as f64, self.camera.height as f64);
         let wanted = 2.5 * sigma_px + 3.0;
         let acquisition = wanted > f * ACQUISITION_RADIUS_F;
-        let radius_full = if acquisition { wanted.min(w.max(h)) } else { wanted.min(f * 0.25) };
-        let margin_px = if acquisition { radius_full } else { 0.0 };
+        let mut radius_full = if acquisition { wanted.min(w.max(h)) } else { wanted.min(f * 0.25) };
+        let mut margin_px = if acquisition { radius_full } else { 0.0 };
         // An uncertainty wider than one search reaches (a low camera
         // kilometres off) is searched in tiles, as many a frame as its work budget allows.
-        let tiles = if acquisition {
-            let reach_m = margin_px / f * fp.center_range_m;
-            acquisition_tiles(reach_m, wanted / f * fp.center_range_m)
+        let need_m = wanted / f * fp.center_range_m;
+        let mut tiles = if acquisition {
+            acquisition_tiles(margin_px / f * fp.center_range_m, need_m)
         } else {
             Vec::new()
         };
+        // Once that wide layout has been searched over, every other lost
+        // frame searches the narrow one instead, where it differs.
+        let narrow = if acquisition && self.wide_searched {
+            self.alternation += 1;
+            (self.alternation % 2 == 1)
+                .then(|| self.narrow_layout(t, &pyr, guess, &fp, &att_cov, radius_full, need_m))
+                .flatten()
+        } else {
+            None
+        };
+        if let Some((narrow_tiles, radius_px)) = narrow.as_ref() {
+            tiles.clone_from(narrow_tiles);
+            radius_full = *radius_px;
+            margin_px = *radius_px;
+        }
+        let cursor = if narrow.is_some() { self.narrow_cursor } else { self.acquisition_cursor };
+        let mut walk = TileWalk::new(cursor, tiles.len(), self.params.acquisition_budget_g * 1e9);
         let outcome = if tiles.is_empty() {
+            // One search covers the whole layout (a fix resets the mark).
+            self.wide_searched |= acquisition;
             self.search_from(&pyr, guess, fp, radius_full, margin_px, prior.as_ref())
         } else {
-            let mut walk =
-                TileWalk::new(self.acquisition_cursor, tiles.len(), self.params.acquisition_budget_g * 1e9);
             debug!(
-                "t {t:.3}: acquisition in {} tiles of {:.0} m: {}.. this frame",
+                "t {t:.3}: acquisition in {} {} tiles of {:.0} m: {}.. this frame",
                 tiles.len(),
+                if narrow.is_some() { "narrow" } else { "wide" },
                 ACQUISITION_TILE_SPACING * margin_px / f * fp.center_range_m,
                 walk.start
             );
             let mut outcome = Err(NoSolution::default());
             while let Some(i) = walk.next_tile() {
-                self.acquisition_cursor = walk.cursor();
+                if narrow.is_some() {
+                    self.narrow_cursor = walk.cursor();
+                } else {
+                    self.acquisition_cursor = walk.cursor();
+                    // The wide layout has been searched over once.
+                    self.wide_searched |= walk.cursor() >= tiles.len();
+                }
                 let offset = &tiles[i];
                 let at = match offset {
                     o if *o == Vector2::zeros() => *guess,
@@ -1434,6 +1484,67 @@ impl<'a> Navigator<'a> {
         Ok(sol)
     }
 
+    /// The narrow layout of an acquisition: tiles whose ground reach a
+    /// template's warp stands (and the radius each searches), where that
+    /// reach is less than the wide layout's (its radius `radius_px`) and the
+    /// uncertainty `need_m`, and the wide search's window is wider than
+    /// [`MAX_ACQUISITION_POSITIONS`]; `None` elsewhere (a near-nadir view,
+    /// the low pass).
+    ///
+    /// A template is warped into the image as seen from the tile's centre.
+    /// Seen from a point `d` metres away at the incidence `i`, its
+    /// foreshortening along the line of sight changes by about
+    /// `tan(i) d / range`; the narrow tiles keep that under
+    /// [`ACQUISITION_MAX_FORESHORTENING`], and each searches what its share of
+    /// the grid and the attitude's doubt need, at most its reach. Measured (README,
+    /// acquisition): the oblique balloon (62° at 40 km) searched from a guess
+    /// 6 km off over its whole 512x384 level matched 32 of 300 templates, 5
+    /// consistent, at every frame for 96 frames; its narrow tiles (4 km,
+    /// searched ~90 px around) acquire it within a few. The low pass's wide
+    /// tiles acquire it where its narrow ones (1 km) took 60 frames to reach
+    /// 10 km, and alternating with them 37 frames where it took 5: the
+    /// layouts alternate only where the wide search's window is too wide.
+    #[allow(clippy::too_many_arguments)]
+    fn narrow_layout(
+        &self,
+        t: f64,
+        pyr: &Pyramid,
+        guess: &CameraPose,
+        fp: &Footprint,
+        att_cov: &Matrix3<f64>,
+        radius_px: f64,
+        need_m: f64,
+    ) -> Option<(Vec<Vector2<f64>>, f64)> {
+        let f = self.camera.fx.min(self.camera.fy);
+        let range = fp.center_range_m;
+        let above_m = guess.position.to_geodetic().h_m - self.terrain_h_m;
+        let reach_m = foreshortening_reach_m(range, above_m);
+        if !(reach_m < radius_px / f * range && reach_m < need_m) {
+            return None;
+        }
+        // Only where the wide search's correlations are searched over more
+        // than [`MAX_ACQUISITION_POSITIONS`] at the level it starts on.
+        let level = self.first_level(
+            pyr,
+            guess,
+            &self.widened_footprint(fp.clone(), radius_px),
+            radius_px,
+            radius_px,
+        );
+        let radius_level = (radius_px / (1u32 << level) as f64).ceil() as usize;
+        let positions = correlation_work(1, 1, radius_level, &pyr.levels[level]);
+        if positions <= MAX_ACQUISITION_POSITIONS {
+            return None;
+        }
+        let tile_px = ACQUISITION_TILE_SPACING * std::f64::consts::FRAC_1_SQRT_2 * reach_m / range * f;
+        let attitude_px = 2.5 * (att_cov.trace() / 3.0).sqrt() * f;
+        // (At most the tile's reach, as a wide tile's: a doubt grown to tens of
+        // degrees would make it the whole image again.)
+        let radius = ((tile_px.powi(2) + attitude_px.powi(2)).sqrt() + 3.0).min(reach_m / range * f);
+        debug!("t {t:.3}: narrow layout: {reach_m:.0} m a tile, {radius:.0} px around each");
+        Some((acquisition_tiles(reach_m, need_m), radius))
+    }
+
     /// The prediction that searches around a tiled acquisition `c`: its pose
     /// carried to `t` by the filter's rotation and velocity since, its
     /// uncertainty the acquisition's plus the velocity's over the interval;
@@ -1462,26 +1573,27 @@ impl<'a> Navigator<'a> {
         })
     }
 
-    /// The coarse-to-fine search of one image around the pose `guess`
-    /// (its footprint `fp`): a search radius of `radius_full` pixels, and
-    /// with `margin_px` (an acquisition) the footprint widened by it.
-    fn search_from(
+    /// The footprint `fp` widened by an acquisition's margin of `margin_px`
+    /// pixels (at its centre's range); as it is without one.
+    fn widened_footprint(&self, fp: Footprint, margin_px: f64) -> Footprint {
+        if margin_px > 0.0 {
+            let metres = margin_px / self.camera.fx.min(self.camera.fy) * fp.center_range_m;
+            Footprint { bbox: fp.bbox.grown_m(metres), ..fp }
+        } else {
+            fp
+        }
+    }
+
+    /// The pyramid level a search of `radius_full` pixels around `guess`
+    /// starts on (its footprint `fp`, widened by `margin_px` for an acquisition).
+    fn first_level(
         &self,
         pyr: &Pyramid,
         guess: &CameraPose,
-        fp: Footprint,
+        fp: &Footprint,
         radius_full: f64,
         margin_px: f64,
-        prior: Option<&AttitudePrior>,
-    ) -> Result<Solution, NoSolution> {
-        let f = self.camera.fx.min(self.camera.fy);
-        let fp = if margin_px > 0.0 {
-            let metres = margin_px / f * fp.center_range_m;
-            debug!("acquisition: search radius {radius_full:.0} px, footprint widened by {metres:.0} m");
-            trn_view::footprint::Footprint { bbox: fp.bbox.grown_m(metres), ..fp }
-        } else {
-            fp
-        };
+    ) -> usize {
         // Coarsest level whose search radius fits, then the finest.
         // (The undistortion table stops one level earlier than the image
         // pyramid on small images: a 320x240 camera's 40x30 level has none.)
@@ -1491,7 +1603,7 @@ impl<'a> Navigator<'a> {
             k += 1;
         }
         // A coarse level needs enough landmarks in view, large enough to correlate.
-        while k > 0 && self.usable_landmarks(&fp, guess, k, margin_px) < MIN_COARSE_LANDMARKS {
+        while k > 0 && self.usable_landmarks(fp, guess, k, margin_px) < MIN_COARSE_LANDMARKS {
             k -= 1;
         }
         // An acquisition stands on its coarse level alone: one whose image
@@ -1509,6 +1621,26 @@ impl<'a> Navigator<'a> {
         while margin_px > 0.0 && k > 1 && template_angle(k) > ACQUISITION_MAX_TEMPLATE_ANGLE {
             k -= 1;
         }
+        k
+    }
+
+    /// The coarse-to-fine search of one image around the pose `guess`
+    /// (its footprint `fp`): a search radius of `radius_full` pixels, and
+    /// with `margin_px` (an acquisition) the footprint widened by it.
+    fn search_from(
+        &self,
+        pyr: &Pyramid,
+        guess: &CameraPose,
+        fp: Footprint,
+        radius_full: f64,
+        margin_px: f64,
+        prior: Option<&AttitudePrior>,
+    ) -> Result<Solution, NoSolution> {
+        let fp = self.widened_footprint(fp, margin_px);
+        if margin_px > 0.0 {
+            debug!("acquisition: search radius {radius_full:.0} px, footprint widened by {margin_px:.0} px");
+        }
+        let k = self.first_level(pyr, guess, &fp, radius_full, margin_px);
         let mut pose = *guess;
         let mut radius = ((radius_full / (1u32 << k) as f64).ceil() as usize).max(4);
         let mut best: Option<Solution> = None;
@@ -2123,6 +2255,22 @@ fn acquisition_tiles(reach_m: f64, need_m: f64) -> Vec<Vector2<f64>> {
     tiles
 }
 
+/// How far (m) a viewpoint `range_m` from the ground it looks at, `above_m`
+/// above it, may move across its line of sight before a template's
+/// foreshortening there changes by [`ACQUISITION_MAX_FORESHORTENING`]: the
+/// incidence `i` (cos i = `above_m` / `range_m`) turns by `d / range_m`, the
+/// foreshortening `cos i` by `tan(i) d / range_m` (first order). Unbounded
+/// looking straight down.
+fn foreshortening_reach_m(range_m: f64, above_m: f64) -> f64 {
+    let cos_i = (above_m / range_m).clamp(1e-3, 1.0);
+    let tan_i = (1.0 - cos_i * cos_i).sqrt() / cos_i;
+    if tan_i > 0.0 {
+        ACQUISITION_MAX_FORESHORTENING * range_m / tan_i
+    } else {
+        f64::INFINITY
+    }
+}
+
 /// Multiply-adds of one template's correlation (`width` x `height` pixels,
 /// searched within `radius` px of its prediction in `image`): its pixels
 /// times the positions of a window that size inside the image (those of a
@@ -2735,6 +2883,35 @@ mod tests {
         // The first template at least, however dear.
         assert_eq!(within_budget(&[40, 5], 10.0), 1);
         assert_eq!(within_budget(&[], 10.0), 0);
+    }
+
+    #[test]
+    fn a_narrow_tile_bounds_the_change_of_foreshortening() {
+        // Brute force in the plane of incidence: the ground point at the
+        // origin, the camera `range` away at the incidence `i`, moved by the
+        // reach across its line of sight; a ground segment's foreshortening
+        // is the cosine of the angle it is seen at.
+        let range = 40_000.0;
+        for i_deg in [45.0_f64, 62.6, 75.0] {
+            let i = i_deg.to_radians();
+            let reach = foreshortening_reach_m(range, range * i.cos());
+            let camera = Vector2::new(-range * i.sin(), range * i.cos());
+            for sign in [-1.0, 1.0] {
+                let moved = camera + sign * reach * Vector2::new(i.cos(), i.sin());
+                let cos_moved = moved.y / moved.norm();
+                let change = (cos_moved / i.cos() - 1.0).abs();
+                assert!(
+                    (change - ACQUISITION_MAX_FORESHORTENING).abs() < 0.25 * ACQUISITION_MAX_FORESHORTENING,
+                    "incidence {i_deg} deg, reach {reach:.0} m: foreshortening changed by {change:.3}"
+                );
+            }
+        }
+        // The oblique balloon's view (62.6 deg at 40 km): about 4 km.
+        let oblique = foreshortening_reach_m(range, range * 62.6f64.to_radians().cos());
+        assert!((3_900.0..4_300.0).contains(&oblique), "{oblique}");
+        // Looking straight down a position error warps nothing.
+        assert!(foreshortening_reach_m(30_000.0, 30_000.0).is_infinite());
+        assert!(foreshortening_reach_m(30_000.0, 29_990.0) > 5.0 * 30_000.0);
     }
 
     #[test]

@@ -1398,12 +1398,13 @@ impl<'a> Navigator<'a> {
         } else {
             None
         };
-        if let Some((narrow_tiles, radius_px)) = narrow.as_ref() {
-            tiles.clone_from(narrow_tiles);
-            radius_full = *radius_px;
-            margin_px = *radius_px;
+        let is_narrow = narrow.is_some();
+        if let Some((narrow_tiles, radius_px)) = narrow {
+            tiles = narrow_tiles;
+            radius_full = radius_px;
+            margin_px = radius_px;
         }
-        let cursor = if narrow.is_some() { self.narrow_cursor } else { self.acquisition_cursor };
+        let cursor = if is_narrow { self.narrow_cursor } else { self.acquisition_cursor };
         let mut walk = TileWalk::new(cursor, tiles.len(), self.params.acquisition_budget_g * 1e9);
         let outcome = if tiles.is_empty() {
             // One search covers the whole layout (a fix resets the mark).
@@ -1413,13 +1414,13 @@ impl<'a> Navigator<'a> {
             debug!(
                 "t {t:.3}: acquisition in {} {} tiles of {:.0} m: {}.. this frame",
                 tiles.len(),
-                if narrow.is_some() { "narrow" } else { "wide" },
+                if is_narrow { "narrow" } else { "wide" },
                 ACQUISITION_TILE_SPACING * margin_px / f * fp.center_range_m,
                 walk.start
             );
             let mut outcome = Err(NoSolution::default());
             while let Some(i) = walk.next_tile() {
-                if narrow.is_some() {
+                if is_narrow {
                     self.narrow_cursor = walk.cursor();
                 } else {
                     self.acquisition_cursor = walk.cursor();

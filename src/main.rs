@@ -748,12 +748,13 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
     }
     let report = run.report;
     tracing::info!(
-        "{} of {} frames processed, {} fixes ({} rejected for too few inliers, {} for too small a share of inliers, {} for inliers on a line or in a cluster, {} for their height, {} as inconsistent with the inertial filter, {} acquisitions held for the next frame to confirm; {} frames without a fix updated the filter with their matches; {} frames updated it with the landmarks tracked from the image before), median {:.1} ms per frame; wrote {}, {} and {}",
+        "{} of {} frames processed, {} fixes ({} rejected for too few inliers, {} for too small a share of inliers, {} acquisitions for too few of the templates searched for, {} for inliers on a line or in a cluster, {} for their height, {} as inconsistent with the inertial filter, {} acquisitions held for the next frame to confirm; {} frames without a fix updated the filter with their matches; {} frames updated it with the landmarks tracked from the image before), median {:.1} ms per frame; wrote {}, {} and {}",
         report.processed,
         report.frames,
         report.fixes,
         report.rejected.few_inliers,
         report.rejected.inlier_share,
+        report.rejected.found_share,
         report.rejected.spread,
         report.rejected.height,
         report.rejected.inconsistent,

@@ -253,6 +253,9 @@ impl CalibrationReport {
 pub struct RejectedCounts {
     pub few_inliers: usize,
     pub inlier_share: usize,
+    /// Acquisitions whose inliers were too small a share of the templates
+    /// searched for.
+    pub found_share: usize,
     /// Inliers on a line or in a cluster.
     pub spread: usize,
     pub height: usize,
@@ -375,6 +378,7 @@ pub fn run_flight(
         match r.rejection {
             Some(Rejection::FewInliers { .. }) => rejected.few_inliers += 1,
             Some(Rejection::InlierShare { .. }) => rejected.inlier_share += 1,
+            Some(Rejection::FoundShare { .. }) => rejected.found_share += 1,
             Some(Rejection::Spread { .. }) if r.held => rejected.narrow_held += 1,
             Some(Rejection::Spread { .. }) => rejected.spread += 1,
             Some(Rejection::Height { .. }) => rejected.height += 1,

@@ -252,6 +252,10 @@ pub enum Rejection {
     FewInliers { inliers: usize },
     /// Inliers a smaller share of the matches than `min_inlier_share`.
     InlierShare { inliers: usize, matches: usize },
+    /// An acquisition (or its confirmation) whose inliers are a smaller
+    /// share of the templates it searched for than
+    /// [`MIN_ACQUISITION_FOUND_SHARE`]: an alias matches a few of them.
+    FoundShare { inliers: usize, searched: usize },
     /// Inliers on a line or in a cluster (`min_inlier_cells`,
     /// `min_inlier_spread`): the cells they cover and their spread (pixels).
     Spread { cells: usize, spread_px: f64 },
@@ -382,6 +386,10 @@ pub struct Navigator<'a> {
     wide_searched: bool,
     /// Frames of that alternation so far.
     alternation: usize,
+    /// A wide search's window (the guess's or a wide tile's) has been too
+    /// wide since the last fix ([`Navigator::wide_window_too_wide`]): lost
+    /// frames then alternate the layouts.
+    wide_too_wide: bool,
     /// A tiled acquisition the next frame is to confirm.
     candidate: Option<Candidate>,
     /// Correlation work done (template pixels times search positions, and
@@ -487,6 +495,16 @@ const SEARCH_BUDGETS: f64 = 4.0;
 /// 512x384 level, ~180 000 (radius 233) from a guess 6 km off, matched 32
 /// of 300 templates, 5 consistent, at every frame.
 const MAX_ACQUISITION_POSITIONS: u64 = 100_000;
+
+/// The least share of the templates an acquisition (or the search that
+/// confirms it) searched for at its last level that must be its inliers.
+/// Measured (README, acquisition): an alias of the oblique balloon 10 km
+/// east, 9 km from the truth, held 9 inliers of 300 templates searched and
+/// was confirmed by the next frame with 10 of 300 (and became 18 fixes 9 km
+/// off); the aliases of its acquisition benches held 0.027-0.041 of them,
+/// their true acquisitions (and those of the rockets, the low pass and the
+/// nadir balloon) 0.149-0.96.
+pub const MIN_ACQUISITION_FOUND_SHARE: f64 = 0.1;
 /// Largest change of a template's foreshortening (relative, along the line
 /// of sight) between the pose an acquisition's narrow tile warps it from
 /// and the truth ([`Navigator::narrow_layout`]).
@@ -675,6 +693,7 @@ impl<'a> Navigator<'a> {
             narrow_cursor: 0,
             wide_searched: false,
             alternation: 0,
+            wide_too_wide: false,
             work: Default::default(),
             candidate: None,
         })
@@ -1141,6 +1160,7 @@ impl<'a> Navigator<'a> {
                     self.narrow_cursor = 0;
                     self.wide_searched = false;
                     self.alternation = 0;
+                    self.wide_too_wide = false;
                     let ecef = match pred.filter {
                         Carried::Ins(f) => self.accept_ins(t, f, &sol, calibration_cov, &focal),
                         Carried::Attitude(attitude) => {
@@ -1271,16 +1291,16 @@ impl<'a> Navigator<'a> {
         );
     }
 
+    /// Whether a search's outcome would stand as a fix by its counts
+    /// ([`Self::count_check`]).
+    fn stands(&self, outcome: &Result<Solution, NoSolution>) -> bool {
+        outcome.as_ref().is_ok_and(|sol| self.count_check(sol).is_none())
+    }
+
     /// `Some` when the solution has too few inliers, or too small a share
-    /// of its matches.
+    /// of its matches ([`count_rejection`]).
     fn count_check(&self, sol: &Solution) -> Option<Rejection> {
-        if sol.inliers < self.params.min_inliers {
-            Some(Rejection::FewInliers { inliers: sol.inliers })
-        } else if (sol.inliers as f64) < self.params.min_inlier_share * sol.n_matches as f64 {
-            Some(Rejection::InlierShare { inliers: sol.inliers, matches: sol.n_matches })
-        } else {
-            None
-        }
+        count_rejection(&self.params, sol)
     }
 
     /// The ground the camera at `pose` sees (horizon walking, angle filter).
@@ -1389,11 +1409,16 @@ impl<'a> Navigator<'a> {
             Vec::new()
         };
         // Once that wide layout has been searched over, every other lost
-        // frame searches the narrow one instead, where it differs.
+        // frame searches the narrow one instead, where it differs and a wide
+        // search's window has been too wide.
         let narrow = if acquisition && self.wide_searched {
             self.alternation += 1;
             (self.alternation % 2 == 1)
-                .then(|| self.narrow_layout(t, &pyr, guess, &fp, &att_cov, radius_full, need_m))
+                .then(|| {
+                    self.wide_too_wide
+                        .then(|| self.narrow_layout(t, guess, &fp, &att_cov, radius_full, need_m))
+                        .flatten()
+                })
                 .flatten()
         } else {
             None
@@ -1404,12 +1429,19 @@ impl<'a> Navigator<'a> {
             radius_full = radius_px;
             margin_px = radius_px;
         }
+        let budget = self.params.acquisition_budget_g * 1e9;
         let cursor = if is_narrow { self.narrow_cursor } else { self.acquisition_cursor };
-        let mut walk = TileWalk::new(cursor, tiles.len(), self.params.acquisition_budget_g * 1e9);
-        let outcome = if tiles.is_empty() {
+        let mut walk = TileWalk::new(cursor, tiles.len(), budget);
+        let (mut outcome, covered) = if tiles.is_empty() {
             // One search covers the whole layout (a fix resets the mark).
             self.wide_searched |= acquisition;
-            self.search_from(&pyr, guess, fp, radius_full, margin_px, prior.as_ref())
+            if acquisition && !is_narrow {
+                self.wide_too_wide |= self.wide_window_too_wide(&pyr, guess, &fp, radius_full);
+            }
+            self.work.set(0);
+            let found = self.search_from(&pyr, guess, fp.clone(), radius_full, margin_px, prior.as_ref());
+            walk.spend(self.work.get() as f64);
+            (found, true)
         } else {
             debug!(
                 "t {t:.3}: acquisition in {} {} tiles of {:.0} m: {}.. this frame",
@@ -1418,59 +1450,40 @@ impl<'a> Navigator<'a> {
                 ACQUISITION_TILE_SPACING * margin_px / f * fp.center_range_m,
                 walk.start
             );
-            let mut outcome = Err(NoSolution::default());
-            while let Some(i) = walk.next_tile() {
-                if is_narrow {
-                    self.narrow_cursor = walk.cursor();
-                } else {
-                    self.acquisition_cursor = walk.cursor();
-                    // The wide layout has been searched over once.
-                    self.wide_searched |= walk.cursor() >= tiles.len();
-                }
-                let offset = &tiles[i];
-                let at = match offset {
-                    o if *o == Vector2::zeros() => *guess,
-                    o => CameraPose { position: shifted_enu(&guess.position, o), ..*guess },
-                };
-                let Ok(fp_at) = self.footprint_at(&at) else { continue };
-                let clock = std::time::Instant::now();
-                self.work.set(0);
-                let found = self.search_from(&pyr, &at, fp_at, radius_full, margin_px, prior.as_ref());
-                walk.spend(self.work.get() as f64);
+            let found =
+                self.walk_tiles(t, &pyr, guess, &tiles, radius_full, prior.as_ref(), &mut walk, is_narrow);
+            (found, walk.searched == tiles.len())
+        };
+        // A wide layout searched over within the frame's work budget, in
+        // vain: what is left of the budget goes to the narrow layout's next
+        // tiles, wherever it differs (measured, README acquisition: the
+        // oblique balloon's one search from a guess 6 km south, on its
+        // 128x96 level, took 28 ms and failed at every frame).
+        if acquisition && !is_narrow && covered && walk.spent < budget && !self.stands(&outcome) {
+            if let Some((narrow_tiles, radius_px)) =
+                self.narrow_layout(t, guess, &fp, &att_cov, radius_full, need_m)
+            {
+                let mut rest = TileWalk::new(self.narrow_cursor, narrow_tiles.len(), budget - walk.spent);
                 debug!(
-                    "t {t:.3}: tile {:.0} E {:.0} N: {:.3} G multiply-adds, {:.0} ms, {}",
-                    offset.x,
-                    offset.y,
-                    self.work.get() as f64 * 1e-9,
-                    clock.elapsed().as_secs_f64() * 1e3,
-                    match &found {
-                        Ok(s) => format!("{} inliers", s.inliers),
-                        Err(e) => format!("{} matches", e.matches),
-                    }
+                    "t {t:.3}: the rest of the budget in {} narrow tiles: {}.. this frame",
+                    narrow_tiles.len(),
+                    rest.start
                 );
-                // A tile stands when its solution would (enough inliers, and
-                // a share of its matches); else the next tile is searched,
-                // and the strongest failure is what the frame reports.
-                if found.as_ref().is_ok_and(|sol| self.count_check(sol).is_none()) {
-                    debug!(
-                        "t {t:.3}: acquired in the tile {:.0} m east, {:.0} m north of the guess",
-                        offset.x, offset.y
-                    );
-                    outcome = found.map(|sol| Solution { tile: Some(*offset), ..sol });
-                    break;
-                }
-                let stronger = match (&found, &outcome) {
-                    (Ok(a), Ok(b)) => a.inliers > b.inliers,
-                    (Ok(_), Err(_)) => true,
-                    (Err(a), Err(b)) => a.matches > b.matches,
-                    (Err(_), Ok(_)) => false,
-                };
-                if stronger {
+                let found = self.walk_tiles(
+                    t,
+                    &pyr,
+                    guess,
+                    &narrow_tiles,
+                    radius_px,
+                    prior.as_ref(),
+                    &mut rest,
+                    true,
+                );
+                if self.stands(&found) || stronger(&found, &outcome) {
                     outcome = found;
                 }
             }
-            outcome
-        };
+        }
         let mut sol = outcome?;
         // The refined terrain height helps the next footprint.
         if let Some(h) = sol.mean_landmark_h {
@@ -1485,12 +1498,102 @@ impl<'a> Navigator<'a> {
         Ok(sol)
     }
 
+    /// Searches the acquisition's `tiles` (offsets from `guess`, east and
+    /// north) that `walk` reaches this frame, each `radius_full` pixels
+    /// around, and moves the layout's cursor (`narrow`: the narrow
+    /// layout's) on: the first tile whose solution stands by its counts
+    /// ([`Self::stands`]), else the strongest failure.
+    #[allow(clippy::too_many_arguments)]
+    fn walk_tiles(
+        &mut self,
+        t: f64,
+        pyr: &Pyramid,
+        guess: &CameraPose,
+        tiles: &[Vector2<f64>],
+        radius_full: f64,
+        prior: Option<&AttitudePrior>,
+        walk: &mut TileWalk,
+        narrow: bool,
+    ) -> Result<Solution, NoSolution> {
+        let mut outcome = Err(NoSolution::default());
+        while let Some(i) = walk.next_tile() {
+            if narrow {
+                self.narrow_cursor = walk.cursor();
+            } else {
+                self.acquisition_cursor = walk.cursor();
+                // The wide layout has been searched over once.
+                self.wide_searched |= walk.cursor() >= tiles.len();
+            }
+            let offset = &tiles[i];
+            let at = match offset {
+                o if *o == Vector2::zeros() => *guess,
+                o => CameraPose { position: shifted_enu(&guess.position, o), ..*guess },
+            };
+            let Ok(fp_at) = self.footprint_at(&at) else { continue };
+            if !narrow {
+                self.wide_too_wide |= self.wide_window_too_wide(pyr, &at, &fp_at, radius_full);
+            }
+            let clock = std::time::Instant::now();
+            self.work.set(0);
+            let found = self.search_from(pyr, &at, fp_at, radius_full, radius_full, prior);
+            walk.spend(self.work.get() as f64);
+            debug!(
+                "t {t:.3}: tile {:.0} E {:.0} N: {:.3} G multiply-adds, {:.0} ms, {}",
+                offset.x,
+                offset.y,
+                self.work.get() as f64 * 1e-9,
+                clock.elapsed().as_secs_f64() * 1e3,
+                match &found {
+                    Ok(s) => format!("{} inliers", s.inliers),
+                    Err(e) => format!("{} matches", e.matches),
+                }
+            );
+            // A tile stands when its solution would; else the next tile is
+            // searched, and the strongest failure is what the frame reports.
+            if self.stands(&found) {
+                debug!(
+                    "t {t:.3}: acquired in the tile {:.0} m east, {:.0} m north of the guess",
+                    offset.x, offset.y
+                );
+                return found.map(|sol| Solution { tile: Some(*offset), ..sol });
+            }
+            if stronger(&found, &outcome) {
+                outcome = found;
+            }
+        }
+        outcome
+    }
+
+    /// Whether the wide acquisition search of `radius_px` pixels around
+    /// `guess` (its footprint `fp`) correlates over more than
+    /// [`MAX_ACQUISITION_POSITIONS`] a template at the level it starts on.
+    /// Once one has (the guess's or any wide tile's), lost frames alternate
+    /// the layouts until a fix: measured on the oblique balloon 10 km east
+    /// and south, the guess's own search starts on the 128x96 level (12 000
+    /// positions, searched whole) once the doubt has grown, and fails there
+    /// as its tiles' 512x384 ones do.
+    fn wide_window_too_wide(
+        &self,
+        pyr: &Pyramid,
+        guess: &CameraPose,
+        fp: &Footprint,
+        radius_px: f64,
+    ) -> bool {
+        let level = self.first_level(
+            pyr,
+            guess,
+            &self.widened_footprint(fp.clone(), radius_px),
+            radius_px,
+            radius_px,
+        );
+        let radius_level = (radius_px / (1u32 << level) as f64).ceil() as usize;
+        correlation_work(1, 1, radius_level, &pyr.levels[level]) > MAX_ACQUISITION_POSITIONS
+    }
+
     /// The narrow layout of an acquisition: tiles whose ground reach a
     /// template's warp stands (and the radius each searches), where that
     /// reach is less than the wide layout's (its radius `radius_px`) and the
-    /// uncertainty `need_m`, and the wide search's window is wider than
-    /// [`MAX_ACQUISITION_POSITIONS`]; `None` elsewhere (a near-nadir view,
-    /// the low pass).
+    /// uncertainty `need_m`; `None` elsewhere (a near-nadir view).
     ///
     /// A template is warped into the image as seen from the tile's centre.
     /// Seen from a point `d` metres away at the incidence `i`, its
@@ -1503,13 +1606,13 @@ impl<'a> Navigator<'a> {
     /// consistent, at every frame for 96 frames; its narrow tiles (4 km,
     /// searched ~90 px around) acquire it within a few. The low pass's wide
     /// tiles acquire it where its narrow ones (1 km) took 60 frames to reach
-    /// 10 km, and alternating with them 37 frames where it took 5: the
-    /// layouts alternate only where the wide search's window is too wide.
-    #[allow(clippy::too_many_arguments)]
+    /// 10 km, and alternating with them 37 frames where it took 5: whole
+    /// frames go to the narrow layout only where the wide search's window
+    /// is too wide ([`Self::wide_window_too_wide`]), elsewhere only what a
+    /// frame's budget leaves.
     fn narrow_layout(
         &self,
         t: f64,
-        pyr: &Pyramid,
         guess: &CameraPose,
         fp: &Footprint,
         att_cov: &Matrix3<f64>,
@@ -1521,20 +1624,6 @@ impl<'a> Navigator<'a> {
         let above_m = guess.position.to_geodetic().h_m - self.terrain_h_m;
         let reach_m = foreshortening_reach_m(range, above_m);
         if !(reach_m < radius_px / f * range && reach_m < need_m) {
-            return None;
-        }
-        // Only where the wide search's correlations are searched over more
-        // than [`MAX_ACQUISITION_POSITIONS`] at the level it starts on.
-        let level = self.first_level(
-            pyr,
-            guess,
-            &self.widened_footprint(fp.clone(), radius_px),
-            radius_px,
-            radius_px,
-        );
-        let radius_level = (radius_px / (1u32 << level) as f64).ceil() as usize;
-        let positions = correlation_work(1, 1, radius_level, &pyr.levels[level]);
-        if positions <= MAX_ACQUISITION_POSITIONS {
             return None;
         }
         let tile_px = ACQUISITION_TILE_SPACING * std::f64::consts::FRAC_1_SQRT_2 * reach_m / range * f;
@@ -1696,12 +1785,14 @@ impl<'a> Navigator<'a> {
         search: Search,
         prior: Option<&AttitudePrior>,
     ) -> Result<Solution, NoSolution> {
-        let matches = self.find_matches(pyr, pose, fp, level, search)?;
-        self.solve_level(&matches, level, prior)
+        let (matches, searched) = self.find_matches(pyr, pose, fp, level, search)?;
+        let sol = self.solve_level(&matches, level, prior)?;
+        Ok(Solution { n_searched: searched, ..sol })
     }
 
     /// The templates the guess puts in view at pyramid level `level`, each
-    /// searched for in the image within `search.radius` level pixels.
+    /// searched for in the image within `search.radius` level pixels: the
+    /// matches found, and how many templates were searched for.
     fn find_matches(
         &self,
         pyr: &Pyramid,
@@ -1709,7 +1800,7 @@ impl<'a> Navigator<'a> {
         fp: &trn_view::footprint::Footprint,
         level: usize,
         search: Search,
-    ) -> Result<Vec<Match>, NoSolution> {
+    ) -> Result<(Vec<Match>, usize), NoSolution> {
         let Search { radius, margin_px } = search;
         let scale = (1u32 << level) as f64;
         // Oblique views span many ground resolutions: query the levels around
@@ -1777,7 +1868,7 @@ impl<'a> Navigator<'a> {
             searched,
             matches.len()
         );
-        Ok(matches)
+        Ok((matches, searched))
     }
 
     /// The pose from one pyramid level's matches: P3P RANSAC, then the
@@ -1881,6 +1972,8 @@ impl<'a> Navigator<'a> {
             median_gsd_m: median(&mut gsds),
             acquisition: false,
             tile: None,
+            // (At least its matches; [`Self::stage`] counts the templates.)
+            n_searched: n,
         })
     }
 
@@ -2035,6 +2128,8 @@ struct Solution {
     pose: CameraPose,
     inliers: usize,
     n_matches: usize,
+    /// Templates searched for at its level (found or not).
+    n_searched: usize,
     records: Vec<MatchRecord>,
     /// Landmark (ECEF) of each record.
     points: Vec<Vector3<f64>>,
@@ -2323,6 +2418,33 @@ impl TileWalk {
     }
 }
 
+/// `Some` when the solution has fewer inliers than `min_inliers`, a smaller
+/// share of its matches than `min_inlier_share`, or, an acquisition (or its
+/// confirmation), a smaller share of the templates it searched for than
+/// [`MIN_ACQUISITION_FOUND_SHARE`].
+fn count_rejection(params: &NavParams, sol: &Solution) -> Option<Rejection> {
+    if sol.inliers < params.min_inliers {
+        Some(Rejection::FewInliers { inliers: sol.inliers })
+    } else if (sol.inliers as f64) < params.min_inlier_share * sol.n_matches as f64 {
+        Some(Rejection::InlierShare { inliers: sol.inliers, matches: sol.n_matches })
+    } else if sol.acquisition && (sol.inliers as f64) < MIN_ACQUISITION_FOUND_SHARE * sol.n_searched as f64 {
+        Some(Rejection::FoundShare { inliers: sol.inliers, searched: sol.n_searched })
+    } else {
+        None
+    }
+}
+
+/// Whether the search outcome `a` is stronger than `b`: more inliers, or
+/// (neither solved) more matches.
+fn stronger(a: &Result<Solution, NoSolution>, b: &Result<Solution, NoSolution>) -> bool {
+    match (a, b) {
+        (Ok(a), Ok(b)) => a.inliers > b.inliers,
+        (Ok(_), Err(_)) => true,
+        (Err(a), Err(b)) => a.matches > b.matches,
+        (Err(_), Ok(_)) => false,
+    }
+}
+
 /// How many of the leading `works` fit within `budget` (at least one when
 /// there is one).
 fn within_budget(works: &[u64], budget: f64) -> usize {
@@ -2595,6 +2717,39 @@ mod tests {
         assert_eq!(prior_gated_update(&camera, &q, &mut h, &seen(&camera, &far, &points)), 0);
     }
 
+    /// An acquisition whose inliers are few of the templates it searched
+    /// for is an alias (the oblique balloon's 9 of 300, 9 km off), whatever
+    /// their share of its matches (9 of 17); a true one holds more (the
+    /// 640x480 rocket's tile, 15 of 101). A tracking fix is not held to it.
+    #[test]
+    fn an_acquisition_must_find_a_share_of_what_it_searched_for() {
+        let params = NavParams::default();
+        let with = |inliers: usize, n_matches: usize, n_searched: usize, acquisition: bool| Solution {
+            inliers,
+            n_matches,
+            n_searched,
+            acquisition,
+            ..solution_of(&[])
+        };
+        assert_eq!(
+            count_rejection(&params, &with(9, 17, 300, true)),
+            Some(Rejection::FoundShare { inliers: 9, searched: 300 })
+        );
+        assert_eq!(count_rejection(&params, &with(15, 20, 101, true)), None);
+        assert_eq!(count_rejection(&params, &with(9, 17, 300, false)), None);
+        // About the bound (30 of 300): 31 stands, 29 does not.
+        assert_eq!(count_rejection(&params, &with(31, 40, 300, true)), None);
+        assert!(matches!(
+            count_rejection(&params, &with(29, 40, 300, true)),
+            Some(Rejection::FoundShare { .. })
+        ));
+        // The other counts come first.
+        assert_eq!(
+            count_rejection(&params, &with(9, 40, 300, true)),
+            Some(Rejection::InlierShare { inliers: 9, matches: 40 })
+        );
+    }
+
     fn solution_of(matches: &[(f64, Option<f64>, bool)]) -> Solution {
         let records = matches
             .iter()
@@ -2623,6 +2778,7 @@ mod tests {
             prior_loosened: false,
             acquisition: false,
             tile: None,
+            n_searched: 0,
             mean_landmark_h: None,
             median_gsd_m: None,
         }

@@ -501,10 +501,11 @@ const MAX_ACQUISITION_POSITIONS: u64 = 100_000;
 /// Measured (README, acquisition): an alias of the oblique balloon 10 km
 /// east, 9 km from the truth, held 9 inliers of 300 templates searched and
 /// was confirmed by the next frame with 10 of 300 (and became 18 fixes 9 km
-/// off); the aliases of its acquisition benches held 0.027-0.041 of them,
-/// their true acquisitions (and those of the rockets, the low pass and the
-/// nadir balloon) 0.149-0.96.
-pub const MIN_ACQUISITION_FOUND_SHARE: f64 = 0.1;
+/// off); the aliases of its acquisition benches held 0.027-0.041 of them.
+/// True acquisitions held 0.149-1.0 on the benches of every flight, and
+/// 0.062 in `tests/navigate.rs`'s climbing rocket 10 km off (a tile's 8 of
+/// 130, confirmed with 14 of 115), which a tenth refused.
+pub const MIN_ACQUISITION_FOUND_SHARE: f64 = 0.05;
 /// Largest change of a template's foreshortening (relative, along the line
 /// of sight) between the pose an acquisition's narrow tile warps it from
 /// and the truth ([`Navigator::narrow_layout`]).
@@ -2720,7 +2721,8 @@ mod tests {
     /// An acquisition whose inliers are few of the templates it searched
     /// for is an alias (the oblique balloon's 9 of 300, 9 km off), whatever
     /// their share of its matches (9 of 17); a true one holds more (the
-    /// 640x480 rocket's tile, 15 of 101). A tracking fix is not held to it.
+    /// 640x480 rocket's tiles, 15 of 101 and 8 of 130). A tracking fix is
+    /// not held to it.
     #[test]
     fn an_acquisition_must_find_a_share_of_what_it_searched_for() {
         let params = NavParams::default();
@@ -2736,6 +2738,7 @@ mod tests {
             Some(Rejection::FoundShare { inliers: 9, searched: 300 })
         );
         assert_eq!(count_rejection(&params, &with(15, 20, 101, true)), None);
+        assert_eq!(count_rejection(&params, &with(8, 10, 130, true)), None);
         assert_eq!(count_rejection(&params, &with(9, 17, 300, false)), None);
         // About the bound (30 of 300): 31 stands, 29 does not.
         assert_eq!(count_rejection(&params, &with(31, 40, 300, true)), None);

@@ -1436,12 +1436,12 @@ impl<'a> Navigator<'a> {
         let (mut outcome, covered) = if tiles.is_empty() {
             // One search covers the whole layout (a fix resets the mark).
             self.wide_searched |= acquisition;
-            if acquisition && !is_narrow {
-                self.wide_too_wide |= self.wide_window_too_wide(&pyr, guess, &fp, radius_full);
-            }
             self.work.set(0);
             let found = self.search_from(&pyr, guess, fp.clone(), radius_full, margin_px, prior.as_ref());
             walk.spend(self.work.get() as f64);
+            if acquisition && !is_narrow && self.work.get() > 0 {
+                self.wide_too_wide |= self.wide_window_too_wide(&pyr, guess, &fp, radius_full);
+            }
             (found, true)
         } else {
             debug!(
@@ -1531,13 +1531,14 @@ impl<'a> Navigator<'a> {
                 o => CameraPose { position: shifted_enu(&guess.position, o), ..*guess },
             };
             let Ok(fp_at) = self.footprint_at(&at) else { continue };
-            if !narrow {
-                self.wide_too_wide |= self.wide_window_too_wide(pyr, &at, &fp_at, radius_full);
-            }
             let clock = std::time::Instant::now();
             self.work.set(0);
-            let found = self.search_from(pyr, &at, fp_at, radius_full, radius_full, prior);
+            let found = self.search_from(pyr, &at, fp_at.clone(), radius_full, radius_full, prior);
             walk.spend(self.work.get() as f64);
+            // (A tile off the map searched nothing.)
+            if !narrow && self.work.get() > 0 {
+                self.wide_too_wide |= self.wide_window_too_wide(pyr, &at, &fp_at, radius_full);
+            }
             debug!(
                 "t {t:.3}: tile {:.0} E {:.0} N: {:.3} G multiply-adds, {:.0} ms, {}",
                 offset.x,

@@ -2741,10 +2741,10 @@ mod tests {
         assert_eq!(count_rejection(&params, &with(15, 20, 101, true)), None);
         assert_eq!(count_rejection(&params, &with(8, 10, 130, true)), None);
         assert_eq!(count_rejection(&params, &with(9, 17, 300, false)), None);
-        // About the bound (30 of 300): 31 stands, 29 does not.
-        assert_eq!(count_rejection(&params, &with(31, 40, 300, true)), None);
+        // About the bound (15 of 300): 16 stands, 14 does not.
+        assert_eq!(count_rejection(&params, &with(16, 40, 300, true)), None);
         assert!(matches!(
-            count_rejection(&params, &with(29, 40, 300, true)),
+            count_rejection(&params, &with(14, 40, 300, true)),
             Some(Rejection::FoundShare { .. })
         ));
         // The other counts come first.

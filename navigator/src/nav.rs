@@ -396,6 +396,9 @@ pub struct Navigator<'a> {
     /// [`TEMPLATE_WORK`] a template predicted) since the tile loop of
     /// [`Self::solve`] last reset it.
     work: std::cell::Cell<u64>,
+    /// Search positions a template of the last [`Self::search_from`]'s
+    /// first level ([`Self::wide_window_too_wide`]).
+    window_positions: std::cell::Cell<u64>,
 }
 
 /// An acquisition found in a tile away from the guess, held for the next
@@ -696,6 +699,7 @@ impl<'a> Navigator<'a> {
             alternation: 0,
             wide_too_wide: false,
             work: Default::default(),
+            window_positions: Default::default(),
             candidate: None,
         })
     }
@@ -1440,7 +1444,7 @@ impl<'a> Navigator<'a> {
             let found = self.search_from(&pyr, guess, fp.clone(), radius_full, margin_px, prior.as_ref());
             walk.spend(self.work.get() as f64);
             if acquisition && !is_narrow && self.work.get() > 0 {
-                self.wide_too_wide |= self.wide_window_too_wide(&pyr, guess, &fp, radius_full);
+                self.wide_too_wide |= self.wide_window_too_wide();
             }
             (found, true)
         } else {
@@ -1533,11 +1537,11 @@ impl<'a> Navigator<'a> {
             let Ok(fp_at) = self.footprint_at(&at) else { continue };
             let clock = std::time::Instant::now();
             self.work.set(0);
-            let found = self.search_from(pyr, &at, fp_at.clone(), radius_full, radius_full, prior);
+            let found = self.search_from(pyr, &at, fp_at, radius_full, radius_full, prior);
             walk.spend(self.work.get() as f64);
             // (A tile off the map searched nothing.)
             if !narrow && self.work.get() > 0 {
-                self.wide_too_wide |= self.wide_window_too_wide(pyr, &at, &fp_at, radius_full);
+                self.wide_too_wide |= self.wide_window_too_wide();
             }
             debug!(
                 "t {t:.3}: tile {:.0} E {:.0} N: {:.3} G multiply-adds, {:.0} ms, {}",
@@ -1566,30 +1570,15 @@ impl<'a> Navigator<'a> {
         outcome
     }
 
-    /// Whether the wide acquisition search of `radius_px` pixels around
-    /// `guess` (its footprint `fp`) correlates over more than
-    /// [`MAX_ACQUISITION_POSITIONS`] a template at the level it starts on.
-    /// Once one has (the guess's or any wide tile's), lost frames alternate
-    /// the layouts until a fix: measured on the oblique balloon 10 km east
-    /// and south, the guess's own search starts on the 128x96 level (12 000
-    /// positions, searched whole) once the doubt has grown, and fails there
-    /// as its tiles' 512x384 ones do.
-    fn wide_window_too_wide(
-        &self,
-        pyr: &Pyramid,
-        guess: &CameraPose,
-        fp: &Footprint,
-        radius_px: f64,
-    ) -> bool {
-        let level = self.first_level(
-            pyr,
-            guess,
-            &self.widened_footprint(fp.clone(), radius_px),
-            radius_px,
-            radius_px,
-        );
-        let radius_level = (radius_px / (1u32 << level) as f64).ceil() as usize;
-        correlation_work(1, 1, radius_level, &pyr.levels[level]) > MAX_ACQUISITION_POSITIONS
+    /// Whether the last wide acquisition search ([`Self::search_from`])
+    /// correlated over more than [`MAX_ACQUISITION_POSITIONS`] a template at
+    /// the level it started on. Once one has (the guess's or any wide
+    /// tile's), lost frames alternate the layouts until a fix: measured on
+    /// the oblique balloon 10 km east and south, the guess's own search
+    /// starts on the 128x96 level (12 000 positions, searched whole) once the
+    /// doubt has grown, and fails there as its tiles' 512x384 ones do.
+    fn wide_window_too_wide(&self) -> bool {
+        self.window_positions.get() > MAX_ACQUISITION_POSITIONS
     }
 
     /// The narrow layout of an acquisition: tiles whose ground reach a
@@ -1735,6 +1724,7 @@ impl<'a> Navigator<'a> {
         let k = self.first_level(pyr, guess, &fp, radius_full, margin_px);
         let mut pose = *guess;
         let mut radius = ((radius_full / (1u32 << k) as f64).ceil() as usize).max(4);
+        self.window_positions.set(correlation_work(1, 1, radius, &pyr.levels[k]));
         let mut best: Option<Solution> = None;
         // Coarse to fine: each level starts from the pose of the one above
         // when that one is trustworthy (enough inliers, attitude within the

@@ -399,6 +399,9 @@ pub struct Navigator<'a> {
     /// Search positions a template of the last [`Self::search_from`]'s
     /// first level ([`Self::wide_window_too_wide`]).
     window_positions: std::cell::Cell<u64>,
+    /// Set while a tile of an acquisition is searched: the landmarks its
+    /// first level searches for ([`ACQUISITION_TILE_LANDMARKS`]).
+    tile_landmarks: std::cell::Cell<Option<usize>>,
 }
 
 /// An acquisition found in a tile away from the guess, held for the next
@@ -515,6 +518,17 @@ pub const MIN_ACQUISITION_FOUND_SHARE: f64 = 0.05;
 const ACQUISITION_MAX_FORESHORTENING: f64 = 0.2;
 /// Most tiles an acquisition lays out.
 const ACQUISITION_MAX_TILES: usize = 400;
+/// The landmarks a tile's search looks for on its acquisition level (at most
+/// `--max-landmarks`; the guess's own search takes them all). Half the work
+/// a tile, twice the tiles a frame. Measured (README, acquisition), against
+/// 300: the 640x480 rocket 10 km off from frame 9 / 11 (told / not told)
+/// where it took 13 / 25, 10 km and 10.8 deg from 13 / 15 (24 / 25); the low
+/// pass 10 km east from 24 / 4 (37 / 5); the oblique balloon 10 km east and
+/// west from 8 / 10 (10 / 12, 12 / 12). 100 a tile were too few to stand
+/// (the low pass 10 km east from 40 / 27). The found share
+/// ([`MIN_ACQUISITION_FOUND_SHARE`]) holds for them as for any acquisition:
+/// before it, 120-180 a tile had let an alias in.
+const ACQUISITION_TILE_LANDMARKS: usize = 150;
 
 /// The largest attitude sigma (deg, any axis) that frames without a first
 /// fix grow the guess's doubt to: 2.5 sigmas then span the widest field
@@ -700,6 +714,7 @@ impl<'a> Navigator<'a> {
             wide_too_wide: false,
             work: Default::default(),
             window_positions: Default::default(),
+            tile_landmarks: Default::default(),
             candidate: None,
         })
     }
@@ -1537,7 +1552,9 @@ impl<'a> Navigator<'a> {
             let Ok(fp_at) = self.footprint_at(&at) else { continue };
             let clock = std::time::Instant::now();
             self.work.set(0);
+            self.tile_landmarks.set(Some(self.params.max_landmarks.min(ACQUISITION_TILE_LANDMARKS)));
             let found = self.search_from(pyr, &at, fp_at, radius_full, radius_full, prior);
+            self.tile_landmarks.set(None);
             walk.spend(self.work.get() as f64);
             // (A tile off the map searched nothing.)
             if !narrow && self.work.get() > 0 {
@@ -2037,13 +2054,15 @@ impl<'a> Navigator<'a> {
         // Round-robin over cells so the cap keeps the spread.
         let mut out = Vec::new();
         let mut round = 0;
-        while out.len() < self.params.max_landmarks {
+        // A tile's acquisition level searches fewer ([`ACQUISITION_TILE_LANDMARKS`]).
+        let cap = self.tile_landmarks.get().filter(|_| margin_px > 0.0).unwrap_or(self.params.max_landmarks);
+        while out.len() < cap {
             let mut any = false;
             for c in &cells {
                 if let Some((_, t)) = c.get(round) {
                     out.push(*t);
                     any = true;
-                    if out.len() == self.params.max_landmarks {
+                    if out.len() == cap {
                         break;
                     }
                 }

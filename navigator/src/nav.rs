@@ -1470,8 +1470,14 @@ impl<'a> Navigator<'a> {
                 ACQUISITION_TILE_SPACING * margin_px / f * fp.center_range_m,
                 walk.start
             );
-            let found =
-                self.walk_tiles(t, &pyr, guess, &tiles, radius_full, prior.as_ref(), &mut walk, is_narrow);
+            let found = self.walk_tiles(
+                t,
+                &pyr,
+                guess,
+                TileLayout { tiles: &tiles, radius_px: radius_full, narrow: is_narrow },
+                prior.as_ref(),
+                &mut walk,
+            );
             (found, walk.searched == tiles.len())
         };
         // A wide layout searched over within the frame's work budget, in
@@ -1493,11 +1499,9 @@ impl<'a> Navigator<'a> {
                     t,
                     &pyr,
                     guess,
-                    &narrow_tiles,
-                    radius_px,
+                    TileLayout { tiles: &narrow_tiles, radius_px, narrow: true },
                     prior.as_ref(),
                     &mut rest,
-                    true,
                 );
                 if self.stands(&found) || stronger(&found, &outcome) {
                     outcome = found;
@@ -1518,23 +1522,21 @@ impl<'a> Navigator<'a> {
         Ok(sol)
     }
 
-    /// Searches the acquisition's `tiles` (offsets from `guess`, east and
-    /// north) that `walk` reaches this frame, each `radius_full` pixels
-    /// around, and moves the layout's cursor (`narrow`: the narrow
-    /// layout's) on: the first tile whose solution stands by its counts
+    /// Searches the tiles of `layout` (offsets from `guess`, east and
+    /// north) that `walk` reaches this frame, each its radius around, and
+    /// moves the layout's cursor (the narrow layout's, or the wide one's)
+    /// on: the first tile whose solution stands by its counts
     /// ([`Self::stands`]), else the strongest failure.
-    #[allow(clippy::too_many_arguments)]
     fn walk_tiles(
         &mut self,
         t: f64,
         pyr: &Pyramid,
         guess: &CameraPose,
-        tiles: &[Vector2<f64>],
-        radius_full: f64,
+        layout: TileLayout,
         prior: Option<&AttitudePrior>,
         walk: &mut TileWalk,
-        narrow: bool,
     ) -> Result<Solution, NoSolution> {
+        let TileLayout { tiles, radius_px: radius_full, narrow } = layout;
         let mut outcome = Err(NoSolution::default());
         while let Some(i) = walk.next_tile() {
             if narrow {
@@ -2387,6 +2389,18 @@ fn correlation_work(width: usize, height: usize, radius: usize, image: &GreyImag
     let nx = side.min((image.width + 1).saturating_sub(width) as u64);
     let ny = side.min((image.height + 1).saturating_sub(height) as u64);
     (width * height) as u64 * nx * ny
+}
+
+/// The tiles of one acquisition layout, and how each is searched.
+#[derive(Clone, Copy, Debug)]
+struct TileLayout<'a> {
+    /// East, north offsets of the guess (m), nearest first.
+    tiles: &'a [Vector2<f64>],
+    /// Radius (full-resolution pixels) each tile searches, and widens its
+    /// footprint by.
+    radius_px: f64,
+    /// The narrow layout's (walked with its own cursor), else the wide one's.
+    narrow: bool,
 }
 
 /// The tiles one frame searches: from the cursor on (wrapping), until

@@ -527,7 +527,7 @@ const ACQUISITION_MAX_TILES: usize = 400;
 /// west from 8 / 10 (10 / 12, 12 / 12). 100 a tile were too few to stand
 /// (the low pass 10 km east from 40 / 27). The found share
 /// ([`MIN_ACQUISITION_FOUND_SHARE`]) holds for them as for any acquisition:
-/// before it, 120-180 a tile had let an alias in.
+/// before it, 180 a tile had let an alias in.
 const ACQUISITION_TILE_LANDMARKS: usize = 150;
 
 /// The largest attitude sigma (deg, any axis) that frames without a first

@@ -295,7 +295,7 @@ struct NavigateArgs {
     #[arg(long, default_value_t = 300)]
     max_landmarks: usize,
     /// Correlation work per lost frame (G multiply-adds, a template's warp
-    /// counting 0.01) when the guess's uncertainty is wider than one search
+    /// counting 0.01, each search position 400 more) when the guess's uncertainty is wider than one search
     /// reaches (a low camera kilometres off): tiles around the guess are
     /// searched nearest first until it is spent. 30 is about a second on one
     /// core.

@@ -290,13 +290,14 @@ fn acquisition(s: &NavFixture, poses: &Path, args: &[&str]) -> (Option<usize>, f
     (first, share, worst)
 }
 
-/// [`acquisition`], and the share of the fixes within their covariance's 95%
-/// bound (`trn evaluate`'s consistency).
+/// [`acquisition`], and `trn evaluate`'s consistency of the fixes: the share
+/// within their covariance's 95% bound, and whether their mean NEES is
+/// under the top of its 95% band.
 fn acquisition_consistency(
     s: &NavFixture,
     poses: &Path,
     args: &[&str],
-) -> (Option<usize>, f64, Option<f64>, f64) {
+) -> (Option<usize>, f64, Option<f64>, (f64, bool)) {
     let o = navigate(s, poses, args);
     assert!(o.status.success(), "navigate failed: {}", stderr(&o));
     let r = rows(poses);
@@ -308,7 +309,9 @@ fn acquisition_consistency(
         (run["status"]["share_fix"].as_f64().unwrap(), run["fix_errors"]["pos_m"]["max"].as_f64());
     println!("{args:?}: first fix at {first:?}; fix share {share:.2}, worst fix {worst:?} m");
     println!("{args:?}: consistency {}", run["consistency"]);
-    (first, share, worst, run["consistency"]["share_within_95"].as_f64().unwrap_or(0.0))
+    let c = &run["consistency"];
+    let nees_under_band = c["mean_nees"].as_f64().zip(c["band"][1].as_f64()).is_some_and(|(n, top)| n <= top);
+    (first, share, worst, (c["share_within_95"].as_f64().unwrap_or(0.0), nees_under_band))
 }
 
 /// [`acquisition`] with its checks: a first fix no later than frame
@@ -393,16 +396,24 @@ fn a_low_camera_acquires_from_1_5_and_5_km() {
     // fix comes from a tile, kilometres above the guess. The first fix's
     // height gate, at the 20 m/s of a navigator without the inertial filter,
     // refused it and every later one; at the filter's initial velocity doubt
-    // it stands. Found at frame 10 (93 m off at worst) with a tile's search
-    // looking for 150 landmarks; at frame 26 with 300 (its first fix, 14
-    // inliers, 333 m off but inside its covariance). Every fix is within its
-    // 95% bound (#13: none beyond 5 sigma).
+    // it stands. Found at frame 9, its first fix 222 m off (18 inliers;
+    // 80 m of sigma east, where the rocket's first frames see ~20 landmarks),
+    // with a tile's acquisition level correlating 23 px template centres; at
+    // frame 10 (93 m off at worst) with whole templates, at frame 26 with 300
+    // landmarks a tile. Its fixes are consistent: their mean NEES under the
+    // top of its 95% band, 90% of them inside their 95% bound (a consistent
+    // navigator leaves 5% outside: 21 of 22 here, 16 of 22 when the filter
+    // restarted from the fix's covariance without the calibration's), and
+    // none beyond #13's 250 m.
     let climbing = realistic_sim(dir.path(), "sierra-rocket-640x480", 10000.0, "15", "climbing-10km");
     let s = NavFixture { flight: climbing, ..s };
-    let (first, share, worst, within) =
+    let (first, share, worst, (within, nees_ok)) =
         acquisition_consistency(&s, &s.root().join("poses-climbing.csv"), &[]);
-    assert!(first.is_some_and(|f| f <= 15) && share >= 0.05, "first fix at {first:?}, fix share {share}");
-    assert!(within == 1.0 && worst.is_some_and(|w| w < 500.0), "worst fix {worst:?} m, {within} within 95%");
+    assert!(first.is_some_and(|f| f <= 10) && share >= 0.05, "first fix at {first:?}, fix share {share}");
+    assert!(
+        nees_ok && within >= 0.9 && worst.is_some_and(|w| w < 250.0),
+        "worst fix {worst:?} m, {within} within 95%, mean NEES under its band: {nees_ok}"
+    );
 }
 
 /// Moves `flight`'s initial guess to `east_m`, `north_m` from its first true

@@ -84,7 +84,8 @@ pub struct NavParams {
     /// Correlation work a frame spends on an acquisition searched in tiles
     /// (the uncertainty wider than one search reaches: a low camera
     /// kilometres off; see [`acquisition_tiles`]), in G multiply-adds, a
-    /// template's prediction counting [`TEMPLATE_WORK`]: tiles are searched
+    /// template's prediction counting [`TEMPLATE_WORK`] and each position of
+    /// a correlation [`NCC_POSITION_WORK`] more: tiles are searched
     /// until it is spent (at least one, each at most once a frame), so a lost
     /// frame costs about the same whatever the camera, and tiles without
     /// landmarks cost nothing. One acquisition search correlates at most
@@ -484,6 +485,14 @@ const ACQUISITION_RADIUS_F: f64 = 0.5;
 /// footprint widened by the image's size): a guess that far off diagonally
 /// is still found.
 const ACQUISITION_TILE_SPACING: f64 = 0.7;
+/// The work of one position of a correlation besides its multiply-adds
+/// (the image's sums under the template, the normalisation, the peak and
+/// the second peak), in multiply-adds: measured on one core (AVX2,
+/// `trn-vision`'s `ncc` over a 320x240 image), 15-20 ns a position at
+/// 0.045 ns a multiply-add, as much as a 20x20 template's own. Without it
+/// the 23 px templates of an acquisition ([`ACQUISITION_MAX_PATCH_PX`])
+/// made lost frames 1.25-1.35x longer than the budget meant.
+const NCC_POSITION_WORK: u64 = 400;
 /// The work of predicting one template (its warp through the terrain), in
 /// correlation multiply-adds: measured, ~0.3 ms a template against ~30 ms
 /// per G multiply-adds on one core (AVX2), on the rockets' tiles.
@@ -529,6 +538,28 @@ const ACQUISITION_MAX_TILES: usize = 400;
 /// ([`MIN_ACQUISITION_FOUND_SHARE`]) holds for them as for any acquisition:
 /// before it, 180 a tile had let an alias in.
 const ACQUISITION_TILE_LANDMARKS: usize = 150;
+/// Largest warped template side (level px) on an acquisition's level
+/// (any search wider than its footprint): larger ones are cut to their
+/// centre (the levels below it take [`MAX_PATCH_PX`]). A template
+/// warped as seen from a guess kilometres off is warped wrong the more the
+/// farther from its centre, and its correlation costs its pixels at every
+/// position of a window as wide as the image (the low pass's tile ~17 G
+/// with 63, ~6 G with 23). Measured (README, acquisition), with
+/// [`ACQUISITION_ALONG_SIGHT_STEP`] and against 63: over the 22 runs from
+/// 10 km of the benches the latest first fix 24 -> 12, the mean 7.2 -> 6.3;
+/// alone, the low pass 10 km east not told fell between its tiles (4 -> 24).
+const ACQUISITION_MAX_PATCH_PX: usize = 23;
+/// Spacing of an oblique view's acquisition tiles along its line of sight,
+/// in ground range over the sine of the boresight's angle from the vertical
+/// ([`sight_line`]): the truth is then at most half of it along the line of
+/// sight from a tile, where the tile sees the templates ~22% larger or
+/// smaller than the truth does. Measured (README, acquisition): the low
+/// pass's (50 deg forward, 7.6 km range) wide tiles, 6.3 km apart, failed
+/// 2.8-3.7 km from the truth along its line of sight and acquired 1.5-2.4 km
+/// from it; across it 3.7 km. 0.55 left the low pass 10 km east, not told,
+/// between its tiles until frame 32; 0.45 costs the oblique balloon (19 km
+/// tiles) two frames told 10 km off (east, west: 8 -> 10).
+const ACQUISITION_ALONG_SIGHT_STEP: f64 = 0.45;
 
 /// The largest attitude sigma (deg, any axis) that frames without a first
 /// fix grow the guess's doubt to: 2.5 sigmas then span the widest field
@@ -1023,12 +1054,18 @@ impl<'a> Navigator<'a> {
             // kilometres per second of velocity. It restarts the pose.
             // So is a first fix after the guess was doubted: the inflated
             // covariance let it through the gate, and the same
-            // correlations would take the jump for velocity.
+            // correlations would take the jump for velocity. It restarts
+            // with the pose's doubt as reported, the calibration's share
+            // included: measured (`tests/navigate.rs`, the climbing 640x480
+            // rocket 10 km off), a first fix 222 m off with 80 m of sigma
+            // (18 inliers) restarted without it, and 6 of its 22 fixes fell
+            // outside their 95% bound (mean NEES 4.3 over a band up to 4.1);
+            // with it 1 of 22, mean NEES 2.6.
             _ if sol.acquisition || self.guess_doubted => {
                 self.guess_doubted = false;
                 if let Some(r) = self.refine_inliers(sol, None) {
                     debug!("t {t:.3}: acquired: the filter's pose restarts from the image's");
-                    f.reset_pose(&q, &r.pose, &r.covariance, 0.0);
+                    f.reset_pose(&q, &r.pose, &(r.covariance + calibration_cov), 0.0);
                     if f.forget_velocity_beyond(self.params.init_velocity_sigma_m_s) {
                         debug!("t {t:.3}: the velocity, doubted beyond the initial guess's, restarts as it");
                     }
@@ -1423,8 +1460,9 @@ impl<'a> Navigator<'a> {
         // An uncertainty wider than one search reaches (a low camera
         // kilometres off) is searched in tiles, as many a frame as its work budget allows.
         let need_m = wanted / f * fp.center_range_m;
+        // (An oblique view's tiles lie closer along its line of sight.)
         let mut tiles = if acquisition {
-            acquisition_tiles(margin_px / f * fp.center_range_m, need_m)
+            acquisition_tiles(margin_px / f * fp.center_range_m, need_m, sight_line(guess, fp.center_range_m))
         } else {
             Vec::new()
         };
@@ -1642,7 +1680,7 @@ impl<'a> Navigator<'a> {
         // degrees would make it the whole image again.)
         let radius = ((tile_px.powi(2) + attitude_px.powi(2)).sqrt() + 3.0).min(reach_m / range * f);
         debug!("t {t:.3}: narrow layout: {reach_m:.0} m a tile, {radius:.0} px around each");
-        Some((acquisition_tiles(reach_m, need_m), radius))
+        Some((acquisition_tiles(reach_m, need_m, None), radius))
     }
 
     /// The prediction that searches around a tiled acquisition `c`: its pose
@@ -1743,7 +1781,7 @@ impl<'a> Navigator<'a> {
         let k = self.first_level(pyr, guess, &fp, radius_full, margin_px);
         let mut pose = *guess;
         let mut radius = ((radius_full / (1u32 << k) as f64).ceil() as usize).max(4);
-        self.window_positions.set(correlation_work(1, 1, radius, &pyr.levels[k]));
+        self.window_positions.set(window_positions(1, 1, radius, &pyr.levels[k]));
         let mut best: Option<Solution> = None;
         // Coarse to fine: each level starts from the pose of the one above
         // when that one is trustworthy (enough inliers, attitude within the
@@ -1838,10 +1876,12 @@ impl<'a> Navigator<'a> {
         self.work.set(self.work.get() + chosen.len() as u64 * TEMPLATE_WORK);
         let img = &pyr.levels[level];
         let view = ImageView::new(img.width, img.height, &img.data);
+        // An acquisition correlates the centres of the larger templates only.
+        let max_patch_px = if margin_px > 0.0 { ACQUISITION_MAX_PATCH_PX } else { MAX_PATCH_PX };
         let predicted: Vec<Predicted> = chosen
             .iter()
             .filter_map(|t| {
-                predict(t, pose, &self.camera, &self.lut, level, MAX_PATCH_PX, self.params.alpha_max_deg)
+                predict(t, pose, &self.camera, &self.lut, level, max_patch_px, self.params.alpha_max_deg)
             })
             .collect();
         // An acquisition correlates its templates (spread over the image, the
@@ -2343,25 +2383,63 @@ fn held(
 
 /// Where an acquisition searches (east, north offsets of the guess, m,
 /// nearest first, the guess itself first) when one search reaches `reach_m`
-/// around the guess and the uncertainty `need_m`: a square grid of
+/// around the guess and the uncertainty `need_m`: a grid of
 /// `ACQUISITION_TILE_SPACING * reach_m` over the disc of `need_m` (at most
-/// [`ACQUISITION_MAX_TILES`]); none when one search around the guess
-/// covers it.
-fn acquisition_tiles(reach_m: f64, need_m: f64) -> Vec<Vector2<f64>> {
-    if !(reach_m > 0.0 && need_m > reach_m) {
+/// [`ACQUISITION_MAX_TILES`]), its rows along an oblique view's line of
+/// `sight` no farther apart than its step; none when one search around the
+/// guess covers it (across the line of sight, and along it within half its
+/// step).
+fn acquisition_tiles(reach_m: f64, need_m: f64, sight: Option<SightLine>) -> Vec<Vector2<f64>> {
+    let step_across = ACQUISITION_TILE_SPACING * reach_m;
+    let (along, step_along) = match sight {
+        Some(s) => (s.dir_en, s.step_m.min(step_across)),
+        None => (Vector2::new(1.0, 0.0), step_across),
+    };
+    if !(reach_m > 0.0 && need_m > reach_m.min(step_along / ACQUISITION_TILE_SPACING)) {
         return Vec::new();
     }
-    let step = ACQUISITION_TILE_SPACING * reach_m;
+    let across = Vector2::new(-along.y, along.x);
     // Rings enough for the most tiles, however wide the uncertainty.
     let most_rings = (ACQUISITION_MAX_TILES as f64).sqrt().ceil() as i64;
-    let n = ((need_m / step).ceil() as i64).min(most_rings);
-    let mut tiles: Vec<Vector2<f64>> = (-n..=n)
-        .flat_map(|i| (-n..=n).map(move |j| Vector2::new(i as f64 * step, j as f64 * step)))
-        .filter(|o| o.norm() <= need_m + 0.5 * step)
+    let n_along = ((need_m / step_along).ceil() as i64).min(most_rings);
+    let n_across = ((need_m / step_across).ceil() as i64).min(most_rings);
+    let mut tiles: Vec<Vector2<f64>> = (-n_along..=n_along)
+        .flat_map(|i| {
+            (-n_across..=n_across)
+                .map(move |j| along * (i as f64 * step_along) + across * (j as f64 * step_across))
+        })
+        .filter(|o| o.norm() <= need_m + 0.5 * step_across)
         .collect();
     tiles.sort_by(|a, b| a.norm().total_cmp(&b.norm()).then(a.x.total_cmp(&b.x)).then(a.y.total_cmp(&b.y)));
     tiles.truncate(ACQUISITION_MAX_TILES);
     tiles
+}
+
+/// An oblique view's line of sight on the ground, which acquisition tiles
+/// are laid out along ([`acquisition_tiles`]).
+#[derive(Clone, Copy, Debug)]
+struct SightLine {
+    /// The boresight's horizontal direction (unit; east, north).
+    dir_en: Vector2<f64>,
+    /// The tiles' spacing along it (m).
+    step_m: f64,
+}
+
+/// The line of sight of a view from `guess` whose image centre is
+/// `range_m` from the ground it sees, with the tile spacing along it of
+/// [`ACQUISITION_ALONG_SIGHT_STEP`]: a tile `d` metres nearer the ground
+/// along the line of sight than the truth (or farther) sees it `d sin(i)`
+/// nearer, its templates `d sin(i) / range` larger (first order; `i` the
+/// boresight's angle from the vertical); `None` looking within 6 degrees of
+/// straight down.
+fn sight_line(guess: &CameraPose, range_m: f64) -> Option<SightLine> {
+    let b_enu =
+        trn_geodesy::LocalFrame::at(guess.position.to_geodetic()).vector_to_enu(&guess.boresight_ecef());
+    let sin_i = b_enu.x.hypot(b_enu.y);
+    (sin_i > 0.1).then(|| SightLine {
+        dir_en: Vector2::new(b_enu.x, b_enu.y) / sin_i,
+        step_m: ACQUISITION_ALONG_SIGHT_STEP * range_m / sin_i,
+    })
 }
 
 /// How far (m) a viewpoint `range_m` from the ground it looks at, `above_m`
@@ -2380,15 +2458,22 @@ fn foreshortening_reach_m(range_m: f64, above_m: f64) -> f64 {
     }
 }
 
-/// Multiply-adds of one template's correlation (`width` x `height` pixels,
-/// searched within `radius` px of its prediction in `image`): its pixels
-/// times the positions of a window that size inside the image (those of a
-/// window cut by the image's border, at most).
+/// The work of one template's correlation (`width` x `height` pixels,
+/// searched within `radius` px of its prediction in `image`), in
+/// multiply-adds: its pixels and [`NCC_POSITION_WORK`] at each position of
+/// its window ([`window_positions`]).
 fn correlation_work(width: usize, height: usize, radius: usize, image: &GreyImage) -> u64 {
+    (width * height) as u64 * window_positions(width, height, radius, image)
+        + NCC_POSITION_WORK * window_positions(width, height, radius, image)
+}
+
+/// The positions of a `width` x `height` template's window of `radius` px
+/// inside `image` (those of a window cut by the image's border, at most).
+fn window_positions(width: usize, height: usize, radius: usize, image: &GreyImage) -> u64 {
     let side = 2 * radius as u64 + 1;
     let nx = side.min((image.width + 1).saturating_sub(width) as u64);
     let ny = side.min((image.height + 1).saturating_sub(height) as u64);
-    (width * height) as u64 * nx * ny
+    nx * ny
 }
 
 /// The tiles of one acquisition layout, and how each is searched.
@@ -3101,15 +3186,16 @@ mod tests {
     #[test]
     fn correlation_work_counts_the_positions_inside_the_image() {
         let image = GreyImage { width: 200, height: 150, data: vec![0.0; 200 * 150] };
-        // Brute force: template pixels times the placements within the
-        // radius (around the image centre) that keep it inside the image.
+        // Brute force: template pixels and the work of a position, times the
+        // placements within the radius (around the image centre) that keep
+        // it inside the image.
         let brute = |w: usize, h: usize, r: usize| {
             let (cx, cy) = ((200 - w) as i64 / 2, (150 - h) as i64 / 2);
             let r = r as i64;
             let inside = |c: i64, side: usize, len: usize| {
                 (c - r..=c + r).filter(|&x| x >= 0 && x as usize + side <= len).count()
             };
-            (w * h * inside(cx, w, 200) * inside(cy, h, 150)) as u64
+            ((w * h) as u64 + NCC_POSITION_WORK) * (inside(cx, w, 200) * inside(cy, h, 150)) as u64
         };
         for (w, h, r) in [(21, 21, 5), (21, 21, 60), (21, 21, 500), (63, 40, 90), (200, 150, 3)] {
             assert_eq!(correlation_work(w, h, r, &image), brute(w, h, r), "{w}x{h} r {r}");
@@ -3144,13 +3230,13 @@ mod tests {
     #[test]
     fn an_acquisition_wider_than_its_reach_is_laid_out_in_tiles_nearest_first() {
         // One search around the guess covers it: no tiles.
-        assert!(acquisition_tiles(2000.0, 1500.0).is_empty());
-        assert!(acquisition_tiles(0.0, 1500.0).is_empty());
+        assert!(acquisition_tiles(2000.0, 1500.0, None).is_empty());
+        assert!(acquisition_tiles(0.0, 1500.0, None).is_empty());
         // 5 km with a 2 km reach: every point of the disc is within half a
         // reach of a tile (brute force on a fine grid), the guess first,
         // nearest first.
         let (reach, need) = (2000.0, 5000.0);
-        let tiles = acquisition_tiles(reach, need);
+        let tiles = acquisition_tiles(reach, need, None);
         assert_eq!(tiles[0], Vector2::zeros());
         assert!(tiles.windows(2).all(|w| w[0].norm() <= w[1].norm()));
         let step = ACQUISITION_TILE_SPACING * reach;
@@ -3168,10 +3254,69 @@ mod tests {
         assert!(worst <= 0.5 * reach && worst > 0.4 * reach, "farthest point from a tile {worst} m");
         // However wide the doubt, at most ACQUISITION_MAX_TILES.
         for need in [1e5, 1e9, f64::INFINITY] {
-            let t = acquisition_tiles(reach, need);
+            let t = acquisition_tiles(reach, need, None);
             assert_eq!(t.len(), ACQUISITION_MAX_TILES, "{need}");
             assert_eq!(t[0], Vector2::zeros());
         }
+    }
+
+    #[test]
+    fn an_oblique_views_tiles_lie_closer_along_its_line_of_sight() {
+        // A low view looking north-east: tiles 1.5 km apart along its line of
+        // sight, 4.2 km across it (a 6 km reach).
+        let along = Vector2::new(1.0, 1.0).normalize();
+        let across = Vector2::new(-along.y, along.x);
+        let (reach, need, step) = (6000.0, 10_000.0, 1500.0);
+        let sight = SightLine { dir_en: along, step_m: step };
+        let tiles = acquisition_tiles(reach, need, Some(sight));
+        assert_eq!(tiles[0], Vector2::zeros());
+        assert!(tiles.windows(2).all(|w| w[0].norm() <= w[1].norm()));
+        // Every point of the disc within half a step along the line of sight
+        // of a tile, and half the other step across it (brute force).
+        let step_across = ACQUISITION_TILE_SPACING * reach;
+        for i in -40..=40 {
+            for j in -40..=40 {
+                let p = Vector2::new(i as f64, j as f64) * (need / 40.0);
+                if p.norm() <= need {
+                    assert!(
+                        tiles.iter().any(|t| {
+                            let d = p - t;
+                            d.dot(&along).abs() <= 0.5 * step + 1e-6
+                                && d.dot(&across).abs() <= 0.5 * step_across + 1e-6
+                        }),
+                        "{p:?} is farther from every tile"
+                    );
+                }
+            }
+        }
+        // One search reaches 6 km across but only 1.05 km along: a 4 km doubt
+        // is tiled along the line of sight; within 1.05 km it is not.
+        let near = acquisition_tiles(reach, 4000.0, Some(sight));
+        assert!(near.len() > 1 && near.iter().any(|t| (t.dot(&along) - step).abs() < 1e-6));
+        assert!(acquisition_tiles(reach, 1000.0, Some(sight)).is_empty());
+        // A line of sight whose step is the grid's own changes nothing but
+        // the grid's axes: as many tiles, at the same distances.
+        let wide = SightLine { dir_en: along, step_m: 1e6 };
+        let (a, b) = (acquisition_tiles(reach, need, Some(wide)), acquisition_tiles(reach, need, None));
+        assert_eq!(a.len(), b.len());
+        assert!(a.iter().zip(&b).all(|(x, y)| (x.norm() - y.norm()).abs() < 1e-6));
+    }
+
+    #[test]
+    fn the_line_of_sight_of_an_oblique_view_and_none_straight_down() {
+        let frame = LocalFrame::at(Geodetic::new(37.0, -118.0, 0.0));
+        let up = frame.r_ecef_enu().column(2).into_owned();
+        let at = frame.to_ecef(Enu::new(0.0, 0.0, 4000.0));
+        let nadir = CameraPose::look_at(at, frame.to_ecef(Enu::new(0.0, 0.0, 0.0)), up);
+        assert!(sight_line(&nadir, 4000.0).is_none());
+        // 50 deg from the vertical, toward the east: range 4000 / cos 50.
+        let ground_e = 4000.0 * 50f64.to_radians().tan();
+        let oblique = CameraPose::look_at(at, frame.to_ecef(Enu::new(ground_e, 0.0, 0.0)), up);
+        let range = 4000.0 / 50f64.to_radians().cos();
+        let s = sight_line(&oblique, range).expect("an oblique view");
+        assert!((s.dir_en - Vector2::new(1.0, 0.0)).norm() < 1e-6, "{:?}", s.dir_en);
+        let want = ACQUISITION_ALONG_SIGHT_STEP * range / 50f64.to_radians().sin();
+        assert!((s.step_m - want).abs() < 1e-6 * want, "{} m, want {want} m", s.step_m);
     }
 
     #[test]

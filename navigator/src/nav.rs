@@ -2387,8 +2387,8 @@ fn held(
 /// `ACQUISITION_TILE_SPACING * reach_m` over the disc of `need_m` (at most
 /// [`ACQUISITION_MAX_TILES`]), its rows along an oblique view's line of
 /// `sight` no farther apart than its step; none when one search around the
-/// guess covers it (across the line of sight, and along it within half its
-/// step).
+/// guess covers it (the reach across the line of sight, and along it its
+/// step over `ACQUISITION_TILE_SPACING`, as the grid's own reach).
 fn acquisition_tiles(reach_m: f64, need_m: f64, sight: Option<SightLine>) -> Vec<Vector2<f64>> {
     let step_across = ACQUISITION_TILE_SPACING * reach_m;
     let (along, step_along) = match sight {
@@ -2463,8 +2463,7 @@ fn foreshortening_reach_m(range_m: f64, above_m: f64) -> f64 {
 /// multiply-adds: its pixels and [`NCC_POSITION_WORK`] at each position of
 /// its window ([`window_positions`]).
 fn correlation_work(width: usize, height: usize, radius: usize, image: &GreyImage) -> u64 {
-    (width * height) as u64 * window_positions(width, height, radius, image)
-        + NCC_POSITION_WORK * window_positions(width, height, radius, image)
+    ((width * height) as u64 + NCC_POSITION_WORK) * window_positions(width, height, radius, image)
 }
 
 /// The positions of a `width` x `height` template's window of `radius` px

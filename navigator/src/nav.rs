@@ -83,9 +83,9 @@ pub struct NavParams {
     pub max_landmarks: usize,
     /// Correlation work a frame spends on an acquisition searched in tiles
     /// (the uncertainty wider than one search reaches: a low camera
-    /// kilometres off; see [`acquisition_tiles`]), in G multiply-adds, a
+    /// kilometres off; see `acquisition_tiles`), in G multiply-adds, a
     /// template's prediction counting [`TEMPLATE_WORK`] and each position of
-    /// a correlation [`NCC_POSITION_WORK`] more: tiles are searched
+    /// a correlation `NCC_POSITION_WORK` (400) more: tiles are searched
     /// until it is spent (at least one, each at most once a frame), so a lost
     /// frame costs about the same whatever the camera, and tiles without
     /// landmarks cost nothing. One acquisition search correlates at most
@@ -544,7 +544,8 @@ const ACQUISITION_TILE_LANDMARKS: usize = 150;
 /// warped as seen from a guess kilometres off is warped wrong the more the
 /// farther from its centre, and its correlation costs its pixels at every
 /// position of a window as wide as the image (the low pass's tile ~17 G
-/// with 63, ~6 G with 23). Measured (README, acquisition), with
+/// of multiply-adds with 63, ~6 G with 23; ~9.5 G with
+/// [`NCC_POSITION_WORK`] counted). Measured (README, acquisition), with
 /// [`ACQUISITION_ALONG_SIGHT_STEP`] and against 63: over the 22 runs from
 /// 10 km of the benches the latest first fix 24 -> 12, the mean 7.2 -> 6.3;
 /// alone, the low pass 10 km east not told fell between its tiles (4 -> 24).
@@ -556,7 +557,7 @@ const ACQUISITION_MAX_PATCH_PX: usize = 23;
 /// smaller than the truth does. Measured (README, acquisition): the low
 /// pass's (50 deg forward, 7.6 km range) wide tiles, 6.3 km apart, failed
 /// 2.8-3.7 km from the truth along its line of sight and acquired 1.5-2.4 km
-/// from it; across it 3.7 km. 0.55 left the low pass 10 km east, not told,
+/// from it; across it 3.8 km. 0.55 left the low pass 10 km east, not told,
 /// between its tiles until frame 32; 0.45 costs the oblique balloon (19 km
 /// tiles) two frames told 10 km off (east, west: 8 -> 10).
 const ACQUISITION_ALONG_SIGHT_STEP: f64 = 0.45;

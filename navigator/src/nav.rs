@@ -89,7 +89,7 @@ pub struct NavParams {
     /// until it is spent (at least one, each at most once a frame), so a lost
     /// frame costs about the same whatever the camera, and tiles without
     /// landmarks cost nothing. One acquisition search correlates at most
-    /// [`SEARCH_BUDGETS`] of it.
+    /// `SEARCH_BUDGETS` (4) of it.
     pub acquisition_budget_g: f64,
     /// Image cells (across x down) the landmarks are spread over.
     pub grid: (usize, usize),

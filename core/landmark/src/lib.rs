@@ -206,7 +206,9 @@ impl HeightGrid {
         let half = (n as f64 - 1.0) / 2.0;
         let col = (east_m / self.spacing_m + half).clamp(0.0, n as f64 - 1.0);
         let row = (half - north_m / self.spacing_m).clamp(0.0, n as f64 - 1.0);
-        let (c0, r0) = (col.floor() as usize, row.floor() as usize);
+        // (Truncation is the floor of these non-negative values, without a
+        // call to libm's `floor` on targets without SSE4.1.)
+        let (c0, r0) = (col as usize, row as usize);
         let (c1, r1) = ((c0 + 1).min(n - 1), (r0 + 1).min(n - 1));
         let (fc, fr) = (col - c0 as f64, row - r0 as f64);
         let h = |r: usize, c: usize| self.heights_m[r * n + c] as f64;

@@ -388,28 +388,32 @@ fn a_low_camera_acquires_from_1_5_and_5_km() {
     acquires(&s, &s.root().join("poses-low.csv"), &["--init-sigma-m", "2000"], 1, 0.6);
     // The 200x150 rocket 10 km off, told: ~100 of its 1.7 km tiles lie
     // nearer the guess than the truth. Four a frame never reached it in the
-    // flight; a frame's work budget (`--acquisition-budget`) searches ~15.
+    // flight; a frame's work budget (`--acquisition-budget`) searched ~15
+    // while a template's prediction counted 10^7 multiply-adds, and ~40 at
+    // what a prediction costs (its first fix at frame 2, where it was 4).
     let small = realistic_sim(dir.path(), "sierra-rocket-200x150", 10000.0, "5", "small-10km");
     let s = NavFixture { flight: small, ..s };
-    acquires(&s, &s.root().join("poses-small.csv"), &["--init-sigma-m", "10000"], 8, 0.25);
+    acquires(&s, &s.root().join("poses-small.csv"), &["--init-sigma-m", "10000"], 4, 0.25);
     // The 640x480 rocket 10 km off, not told, climbing 230 m/s: its first
     // fix comes from a tile, kilometres above the guess. The first fix's
     // height gate, at the 20 m/s of a navigator without the inertial filter,
     // refused it and every later one; at the filter's initial velocity doubt
-    // it stands. Found at frame 9, its first fix 222 m off (18 inliers;
-    // 80 m of sigma east, where the rocket's first frames see ~20 landmarks),
-    // with a tile's acquisition level correlating 23 px template centres; at
-    // frame 10 (93 m off at worst) with whole templates, at frame 26 with 300
-    // landmarks a tile. Its fixes are consistent: their mean NEES under the
-    // top of its 95% band, 90% of them inside their 95% bound (a consistent
-    // navigator leaves 5% outside: 21 of 22 here, 16 of 22 when the filter
-    // restarted from the fix's covariance without the calibration's), and
-    // none beyond #13's 250 m.
+    // it stands. Found at frame 6, its first fix 119 m off (17 inliers;
+    // 65 m of sigma east, where the rocket's first frames see ~20 landmarks);
+    // at frame 9 while a template's prediction counted 10^7 multiply-adds of
+    // the frame's budget, at frame 10 with whole templates on the tiles'
+    // level, at frame 26 with 300 landmarks a tile. Its fixes are
+    // consistent: their mean NEES under the top of its 95% band, 90% of them
+    // inside their 95% bound (a consistent navigator leaves 5% outside: 25
+    // of 25 here; 21 of 25 when each fix counted its landmarks' own errors
+    // anew, the same landmarks seen again keeping a 120 m tilt/shift error
+    // for 4 s; 16 of 22 when the filter restarted from the fix's covariance
+    // without the calibration's), and none beyond #13's 250 m.
     let climbing = realistic_sim(dir.path(), "sierra-rocket-640x480", 10000.0, "15", "climbing-10km");
     let s = NavFixture { flight: climbing, ..s };
     let (first, share, worst, (within, nees_ok)) =
         acquisition_consistency(&s, &s.root().join("poses-climbing.csv"), &[]);
-    assert!(first.is_some_and(|f| f <= 10) && share >= 0.05, "first fix at {first:?}, fix share {share}");
+    assert!(first.is_some_and(|f| f <= 8) && share >= 0.05, "first fix at {first:?}, fix share {share}");
     assert!(
         nees_ok && within >= 0.9 && worst.is_some_and(|w| w < 250.0),
         "worst fix {worst:?} m, {within} within 95%, mean NEES under its band: {nees_ok}"

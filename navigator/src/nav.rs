@@ -1,6 +1,7 @@
 //! The per-frame pipeline: pose guess (gyro), footprint, landmark query,
 //! prediction, correlation, RANSAC + PnP, acceptance.
 
+use std::collections::HashMap;
 use std::time::Instant;
 
 use nalgebra::{DMatrix, DVector, Matrix2, Matrix3, Matrix6, SMatrix, UnitQuaternion, Vector2, Vector3};
@@ -84,7 +85,8 @@ pub struct NavParams {
     /// Correlation work a frame spends on an acquisition searched in tiles
     /// (the uncertainty wider than one search reaches: a low camera
     /// kilometres off; see `acquisition_tiles`), in G multiply-adds, a
-    /// template's prediction counting [`TEMPLATE_WORK`] and each position of
+    /// template's prediction counting [`TEMPLATE_WORK`] and
+    /// [`PREDICT_WORK_PER_PX`] a pixel of its patch, and each position of
     /// a correlation `NCC_POSITION_WORK` (400) more: tiles are searched
     /// until it is spent (at least one, each at most once a frame), so a lost
     /// frame costs about the same whatever the camera, and tiles without
@@ -376,6 +378,10 @@ pub struct Navigator<'a> {
     guess_doubted: bool,
     /// A fix has sized the map offset's prior ([`map_sigmas_for_gsd`]).
     map_sized: bool,
+    /// Per landmark, the accepted fixes in a row (up to the last, since the
+    /// filter's pose last restarted) it was an inlier of
+    /// ([`inlier_sigmas_px`]).
+    landmark_runs: HashMap<i64, u32>,
     /// The next tile of an acquisition searched in tiles
     /// ([`acquisition_tiles`]).
     acquisition_cursor: usize,
@@ -383,7 +389,8 @@ pub struct Navigator<'a> {
     narrow_cursor: usize,
     /// Whether the acquisition's wide layout has been searched once over
     /// since the last fix (all its tiles, or its one search): lost frames
-    /// then alternate between it and the narrow layout, narrow first.
+    /// then alternate between it and the narrow layout, narrow first (as
+    /// they do once a wide window has been too wide, [`Self::wide_too_wide`]).
     wide_searched: bool,
     /// Frames of that alternation so far.
     alternation: usize,
@@ -394,7 +401,7 @@ pub struct Navigator<'a> {
     /// A tiled acquisition the next frame is to confirm.
     candidate: Option<Candidate>,
     /// Correlation work done (template pixels times search positions, and
-    /// [`TEMPLATE_WORK`] a template predicted) since the tile loop of
+    /// each template's prediction) since the tile loop of
     /// [`Self::solve`] last reset it.
     work: std::cell::Cell<u64>,
     /// Search positions a template of the last [`Self::search_from`]'s
@@ -493,10 +500,17 @@ const ACQUISITION_TILE_SPACING: f64 = 0.7;
 /// the 23 px templates of an acquisition ([`ACQUISITION_MAX_PATCH_PX`])
 /// made lost frames 1.25-1.35x longer than the budget meant.
 const NCC_POSITION_WORK: u64 = 400;
-/// The work of predicting one template (its warp through the terrain), in
-/// correlation multiply-adds: measured, ~0.3 ms a template against ~30 ms
-/// per G multiply-adds on one core (AVX2), on the rockets' tiles.
-pub const TEMPLATE_WORK: u64 = 10_000_000;
+/// The work of predicting one template (its warp through the terrain)
+/// besides its pixels' ([`PREDICT_WORK_PER_PX`]), in correlation
+/// multiply-adds. Measured on one core (AVX2, the 640x480 rocket lost 10 km
+/// and 10.8 deg off): a prediction took ~11 us and ~27 ns a pixel of its
+/// patch (25 us for an acquisition's 23x23 centre, 113 us for a tracking
+/// frame's 61x61 on average), against ~24 ms per G multiply-adds of an
+/// acquisition's correlation.
+pub const TEMPLATE_WORK: u64 = 450_000;
+/// The work of predicting one pixel of a template's patch, in correlation
+/// multiply-adds (see [`TEMPLATE_WORK`]).
+pub const PREDICT_WORK_PER_PX: u64 = 1_100;
 /// The most work one acquisition search correlates, in frame budgets
 /// ([`NavParams::acquisition_budget_g`]). One budget cut the oblique
 /// balloon's own search (~105 G on its 512x384 level) to a third of its
@@ -739,6 +753,7 @@ impl<'a> Navigator<'a> {
             track: None,
             guess_doubted: false,
             map_sized: false,
+            landmark_runs: HashMap::new(),
             acquisition_cursor: 0,
             narrow_cursor: 0,
             wide_searched: false,
@@ -1003,7 +1018,7 @@ impl<'a> Navigator<'a> {
             pixel_sigma: (inlier_rms_px(sol) / 2f64.sqrt()).max(REFINE_SIGMA_PX),
             ..RefineOptions::default()
         };
-        let sigmas = inlier_sigmas_px(sol);
+        let sigmas = inlier_sigmas_px(sol, &self.landmark_runs);
         refine_pose_weighted(&self.camera, &px, &pts, Some(&sigmas), &sol.pose, &opts)
     }
 
@@ -1049,6 +1064,10 @@ impl<'a> Navigator<'a> {
             }
             self.map_sized = true;
         }
+        // A restart counts the landmarks' fixes in a row afresh.
+        if sol.acquisition || self.guess_doubted {
+            self.landmark_runs.clear();
+        }
         match self.params.filter {
             // An acquisition's pose is kilometres from the prediction: as an
             // update, the filter's correlations would turn the jump into
@@ -1090,6 +1109,14 @@ impl<'a> Navigator<'a> {
                 }
             }
         }
+        // The fix's inliers, each one more fix in a row.
+        let before = std::mem::take(&mut self.landmark_runs);
+        self.landmark_runs = sol
+            .records
+            .iter()
+            .filter(|r| r.inlier)
+            .map(|r| (r.landmark, 1 + before.get(&r.landmark).copied().unwrap_or(0)))
+            .collect();
         let (pose, cov) = f.pose(&q);
         let (v, v_cov) = f.velocity();
         self.velocity = v;
@@ -1467,10 +1494,13 @@ impl<'a> Navigator<'a> {
         } else {
             Vec::new()
         };
-        // Once that wide layout has been searched over, every other lost
-        // frame searches the narrow one instead, where it differs and a wide
-        // search's window has been too wide.
-        let narrow = if acquisition && self.wide_searched {
+        // Once that wide layout has been searched over, or a wide search's
+        // window has been too wide (from the second lost frame on, not after
+        // the whole wide layout: the oblique balloon's ~26 G wide tiles, one a
+        // frame, had kept its narrow tiles, which acquire it, waiting 4-6
+        // frames), every other lost frame searches the narrow one instead,
+        // where it differs and a wide search's window has been too wide.
+        let narrow = if acquisition && (self.wide_searched || self.wide_too_wide) {
             self.alternation += 1;
             (self.alternation % 2 == 1)
                 .then(|| {
@@ -1885,6 +1915,8 @@ impl<'a> Navigator<'a> {
                 predict(t, pose, &self.camera, &self.lut, level, max_patch_px, self.params.alpha_max_deg)
             })
             .collect();
+        let predict_px: usize = predicted.iter().map(|p| p.patch.width * p.patch.height).sum();
+        self.work.set(self.work.get() + predict_px as u64 * PREDICT_WORK_PER_PX);
         // An acquisition correlates its templates (spread over the image, the
         // best of each cell first) up to [`SEARCH_BUDGETS`] of a frame's work
         // budget: one search of a 1024x768 oblique view over its whole image
@@ -2630,13 +2662,22 @@ fn inliers_of(sol: &Solution) -> (Vec<Pixel>, Vec<Vector3<f64>>) {
 /// explain more than the residuals show, the peaks' sigmas are scaled down
 /// to fit. At least [`REFINE_SIGMA_PX`]. Without peak sigmas: the inliers'
 /// RMS per coordinate for all.
-fn inlier_sigmas_px(sol: &Solution) -> Vec<f64> {
-    let (r2, s2): (Vec<f64>, Vec<f64>) = sol
-        .records
-        .iter()
-        .filter(|r| r.inlier && r.landmark_ecef.is_some())
-        .map(|r| (r.residual_px.powi(2), r.sigma_px.unwrap_or(0.0).powi(2)))
-        .unzip();
+///
+/// The shared part is the landmark's own error (its database position and
+/// height, its warp from about the same view): it repeats in every fix the
+/// landmark is an inlier of, where the peak's is new each image. A landmark
+/// that `runs` says was an inlier of the last `k - 1` accepted fixes in a
+/// row is given `k s0^2` (a random constant's `k` looks then weigh as one),
+/// so the filter no longer averages a landmark's error down by seeing it
+/// again. Measured (README, inertial filter): the 640x480 rocket's fixes
+/// kept a 120 m tilt/shift error for 4 s after its acquisition while their
+/// sigma shrank (4 of 25 fixes outside their 95% bound; none with it).
+fn inlier_sigmas_px(sol: &Solution, runs: &HashMap<i64, u32>) -> Vec<f64> {
+    let inliers: Vec<&MatchRecord> =
+        sol.records.iter().filter(|r| r.inlier && r.landmark_ecef.is_some()).collect();
+    let (r2, s2): (Vec<f64>, Vec<f64>) =
+        inliers.iter().map(|r| (r.residual_px.powi(2), r.sigma_px.unwrap_or(0.0).powi(2))).unzip();
+    let looks = |r: &MatchRecord| 1.0 + runs.get(&r.landmark).copied().unwrap_or(0) as f64;
     let n = r2.len() as f64;
     let excess =
         |s0_2: f64| r2.iter().zip(&s2).map(|(r, s)| r / (2.0 * (s0_2 + s).max(1e-12))).sum::<f64>() - n;
@@ -2655,7 +2696,7 @@ fn inlier_sigmas_px(sol: &Solution) -> Vec<f64> {
                 hi = mid;
             }
         }
-        s2.iter().map(|s| s + hi).collect()
+        s2.iter().zip(&inliers).map(|(s, r)| s + looks(r) * hi).collect()
     };
     var.iter().map(|v| v.sqrt().max(REFINE_SIGMA_PX)).collect()
 }
@@ -2903,7 +2944,7 @@ mod tests {
         m.push((1.0, Some(2.0), true));
         m.push((30.0, Some(0.01), false));
         let sol = solution_of(&m);
-        let s = inlier_sigmas_px(&sol);
+        let s = inlier_sigmas_px(&sol, &HashMap::new());
         assert_eq!(s.len(), 21);
         // sum r^2 / (2 sigma^2) = n over the inliers.
         let fit: f64 = s.iter().map(|x| 1.0 / (2.0 * x * x)).sum();
@@ -2915,13 +2956,35 @@ mod tests {
         let sol = solution_of(
             &(0..10).map(|i| (if i % 2 == 0 { 1.0 } else { 3.0 }, None, true)).collect::<Vec<_>>(),
         );
-        let s = inlier_sigmas_px(&sol);
+        let s = inlier_sigmas_px(&sol, &HashMap::new());
         let rms = (inlier_rms_px(&sol) / 2f64.sqrt()).max(REFINE_SIGMA_PX);
         assert!(s.iter().all(|x| (x - rms).abs() < 1e-6 * rms), "{s:?} {rms}");
         // Peaks wider than the scatter: scaled down to it, their ratios kept.
         let sol = solution_of(&[(0.5, Some(2.0), true), (0.5, Some(4.0), true), (0.5, Some(2.0), true)]);
-        let s = inlier_sigmas_px(&sol);
+        let s = inlier_sigmas_px(&sol, &HashMap::new());
         assert!((s[1] / s[0] - 2.0).abs() < 1e-9 && s[0] < 2.0, "{s:?}");
+    }
+
+    #[test]
+    fn a_landmark_seen_again_weighs_its_shared_sigma_once() {
+        // 20 inliers, residuals of 1 px, peaks of 0.1 px; landmarks 0-4 were
+        // inliers of the last 3 fixes, 5 of the last one.
+        let m: Vec<(f64, Option<f64>, bool)> = (0..20).map(|_| (1.0, Some(0.1), true)).collect();
+        let sol = solution_of(&m);
+        let fresh = inlier_sigmas_px(&sol, &HashMap::new());
+        let runs: HashMap<i64, u32> = (0..5).map(|l| (l, 3)).chain([(5, 1), (99, 7)]).collect();
+        let seen = inlier_sigmas_px(&sol, &runs);
+        // The shared sigma is the frame's whatever was seen before.
+        let s0_2 = fresh[0].powi(2) - 0.01;
+        for (l, (a, b)) in fresh.iter().zip(&seen).enumerate() {
+            let looks = match l {
+                0..=4 => 4.0,
+                5 => 2.0,
+                _ => 1.0,
+            };
+            // (Four looks at 4 s0^2 carry the information of one at s0^2.)
+            assert!((b.powi(2) - (0.01 + looks * s0_2)).abs() < 1e-9, "landmark {l}: {b} (fresh {a})");
+        }
     }
 
     #[test]

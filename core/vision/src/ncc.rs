@@ -1001,6 +1001,21 @@ mod tests {
         assert!((m.u - 15.5).abs() < 0.03 && (m.v - 55.5).abs() < 0.03, "{m:?}");
     }
 
+    /// Seconds a call of `f(k)` (k in 0..n) takes, the best of `batches`
+    /// batches of `n` (the machine is shared), and the sum of what the calls
+    /// returned (so that they are not optimised away).
+    fn best_per_call(batches: usize, n: usize, mut f: impl FnMut(usize) -> f64) -> (f64, f64) {
+        let (mut best, mut acc) = (f64::INFINITY, 0.0);
+        for _ in 0..batches {
+            let t = std::time::Instant::now();
+            for k in 0..n {
+                acc += f(k);
+            }
+            best = best.min(t.elapsed().as_secs_f64() / n as f64);
+        }
+        (best, acc)
+    }
+
     /// cargo test -p trn-vision --release ncc -- --ignored --nocapture
     #[test]
     #[ignore]
@@ -1015,18 +1030,11 @@ mod tests {
             let tpls: Vec<Template> = (0..64)
                 .map(|k| Template::new(w, w, cut(&img, iw, 40 + 7 * k, 30 + 5 * k, w, w), mask.clone()))
                 .collect();
-            // Best of batches: the machine is shared.
-            let (mut best, mut acc) = (f64::INFINITY, 0.0);
-            for _ in 0..400 {
-                let n = 10;
-                let t = std::time::Instant::now();
-                for k in 0..n {
-                    let (x, y) = (40 + 7 * (k % 64), 30 + 5 * (k % 64));
-                    let (u0, v0) = (x as f64 + 15.5 + 3.0, y as f64 + 15.5 - 2.0);
-                    acc += match_template(&view, &tpls[k % 64], u0, v0, 20, &p).map(|m| m.u).unwrap_or(0.0);
-                }
-                best = best.min(t.elapsed().as_secs_f64() / n as f64);
-            }
+            let (best, acc) = best_per_call(400, 10, |k| {
+                let (x, y) = (40 + 7 * (k % 64), 30 + 5 * (k % 64));
+                let (u0, v0) = (x as f64 + 15.5 + 3.0, y as f64 + 15.5 - 2.0);
+                match_template(&view, &tpls[k % 64], u0, v0, 20, &p).map(|m| m.u).unwrap_or(0.0)
+            });
             println!(
                 "ncc {name} 32x32 template, radius 20 (41x41): {:.1} us per match ({acc:.0})",
                 best * 1e6
@@ -1042,16 +1050,10 @@ mod tests {
             let tpls: Vec<Template> = (0..16)
                 .map(|k| Template::new(w, w, cut(&img, iw, 10 + 7 * k, 8 + 5 * k, w, w), mask.clone()))
                 .collect();
-            let (mut best, mut acc) = (f64::INFINITY, 0.0);
-            for _ in 0..100 {
-                let n = 16;
-                let t = std::time::Instant::now();
-                for (k, tpl) in tpls.iter().enumerate() {
-                    let (u0, v0) = (10.0 + 7.0 * k as f64 + 11.0 + 9.0, 8.0 + 5.0 * k as f64 + 11.0 - 6.0);
-                    acc += match_template(&view, tpl, u0, v0, 160, &p).map(|m| m.u).unwrap_or(0.0);
-                }
-                best = best.min(t.elapsed().as_secs_f64() / n as f64);
-            }
+            let (best, acc) = best_per_call(100, tpls.len(), |k| {
+                let (u0, v0) = (10.0 + 7.0 * k as f64 + 11.0 + 9.0, 8.0 + 5.0 * k as f64 + 11.0 - 6.0);
+                match_template(&view, &tpls[k], u0, v0, 160, &p).map(|m| m.u).unwrap_or(0.0)
+            });
             let positions = ((iw - w + 1) * (ih - w + 1)) as f64;
             println!(
                 "ncc {name} 23x23 template over a 160x120 image: {:.1} us per match, {:.1} ns a position ({acc:.0})",

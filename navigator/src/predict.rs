@@ -3,8 +3,8 @@
 //! a per-pixel undistortion table), so it can be correlated with the image.
 //! Over flat terrain the warp is the homography the template's terrain plane
 //! induces; where the terrain departs from the plane by more than
-//! [`RELIEF_SHARE_OF_GSD`] of a template pixel, each image pixel's ray is
-//! intersected with the template's height grid instead (first crossing, so
+//! [`RELIEF_SHARE_OF_GSD`] of a template pixel, the template's height grid is
+//! drawn into the image instead, as a triangle mesh with a depth buffer (so
 //! relief hides what lies behind it).
 
 use nalgebra::{Matrix3, Vector3};
@@ -22,122 +22,139 @@ pub const RELIEF_SHARE_OF_GSD: f64 = 0.25;
 /// Fewest template pixels a prediction must put in the image.
 pub const MIN_VALID_PX: f64 = 40.0;
 
-/// A template's terrain for ray intersection, in its tangent frame.
-struct Relief<'a> {
+/// A template's terrain as a triangle mesh in the image, for the relief warp.
+struct ReliefMesh<'a> {
     grid: &'a trn_landmark::HeightGrid,
-    /// Camera centre (ENU, template frame) and rotation camera -> ENU.
+    /// Camera centre (ENU, template frame) and rotation ENU -> camera.
     origin: Vector3<f64>,
-    r_enu_cam: Matrix3<f64>,
-    h_lo: f64,
-    h_hi: f64,
-    /// Largest horizontal step of the march (m).
-    step_m: f64,
+    r_cam_enu: Matrix3<f64>,
 }
 
-impl Relief<'_> {
-    /// Tangent-plane (east, north) where the ray through normalized image
-    /// point (x, y) first meets the terrain; `None` if it points up or the
-    /// march does not close.
-    fn hit(&self, x: f64, y: f64) -> Option<(f64, f64)> {
-        let d = self.r_enu_cam * Vector3::new(x, y, 1.0);
-        if d.z >= -1e-9 {
-            return None;
+/// Largest side of a mesh cell (template pixels): each height-grid cell is
+/// cut into cells no wider, two triangles each.
+const MESH_CELL_PX: f64 = 2.0;
+
+impl ReliefMesh<'_> {
+    /// Template pixel `(column, row)` of every patch pixel (row-major,
+    /// `side`-square, patch pixel `(i, j)` at level pixel `(x0 + i, y0 + j)`)
+    /// where the template's terrain is what the camera sees there: the height
+    /// grid's surface is cut into triangles (vertices on the bilinear surface,
+    /// at most [`MESH_CELL_PX`] template pixels apart), each projected through
+    /// the camera (lens included) and filled in the image by its barycentric
+    /// weights; the nearest surface wins (a depth buffer), and triangles that
+    /// face away from the camera are left out, so relief hides what lies
+    /// behind it. `keep(i, j)` says which patch pixels may hold data.
+    #[allow(clippy::too_many_arguments)]
+    fn rasterize(
+        &self,
+        t: &Template,
+        camera: &CameraModel,
+        level: usize,
+        side: usize,
+        (x0, y0): (isize, isize),
+        keep: impl Fn(usize, usize) -> bool,
+    ) -> Vec<Option<(f64, f64)>> {
+        let g = self.grid;
+        let n = g.n as usize;
+        let sub = ((g.spacing_m / (MESH_CELL_PX * t.gsd_m)).ceil() as usize).max(1);
+        let m = (n - 1) * sub + 1;
+        let step = g.spacing_m / sub as f64;
+        let half = (n as f64 - 1.0) / 2.0 * g.spacing_m;
+        let (tw, th) = (t.width_px as f64, t.height_px as f64);
+        // Vertices: ENU, patch-local pixel, depth (camera z) and template
+        // pixel, or `None` behind the camera.
+        struct Vertex {
+            enu: Vector3<f64>,
+            px: [f64; 2],
+            depth: f64,
+            at: [f64; 2],
         }
-        let o = &self.origin;
-        let f = |s: f64| o.z + s * d.z - self.grid.height_at(o.x + s * d.x, o.y + s * d.y);
-        // The ray is within the terrain's height band for s in [s0, s1].
-        let (s0, s1) = ((self.h_hi - o.z) / d.z, (self.h_lo - o.z) / d.z);
-        let horiz = d.x.hypot(d.y);
-        let n = if horiz * (s1 - s0) <= self.step_m {
-            1
-        } else {
-            ((horiz * (s1 - s0) / self.step_m).ceil() as usize).min(256)
+        let vertices: Vec<Option<Vertex>> = (0..m * m)
+            .map(|q| {
+                let (e, nn) = (-half + (q % m) as f64 * step, half - (q / m) as f64 * step);
+                let enu = Vector3::new(e, nn, g.height_at(e, nn));
+                let x = self.r_cam_enu * (enu - self.origin);
+                let p = to_level(camera.project(&x)?, level);
+                let at = [e / t.gsd_m + (tw - 1.0) / 2.0, (th - 1.0) / 2.0 - nn / t.gsd_m];
+                Some(Vertex { enu, px: [p.u - x0 as f64, p.v - y0 as f64], depth: x.z, at })
+            })
+            .collect();
+        let mut depth = vec![f64::INFINITY; side * side];
+        let mut out = vec![None; side * side];
+        let lim = side as f64 - 1.0;
+        // The first whole pixel at or after a non-negative `x` (no libm call).
+        let ceil = |x: f64| {
+            let i = x as usize;
+            if (i as f64) < x {
+                i + 1
+            } else {
+                i
+            }
         };
-        let ds = (s1 - s0) / n as f64;
-        let (mut a, mut fa) = (s0, f(s0));
-        for i in 1..=n {
-            let b = s0 + ds * i as f64;
-            let fb = f(b);
-            if fb <= 0.0 {
-                // Bracketed: false position, a few steps (bilinear terrain).
-                let (mut lo, mut flo, mut hi, mut fhi) = (a, fa, b, fb);
-                for _ in 0..6 {
-                    let m =
-                        if flo - fhi > 1e-12 { lo + (hi - lo) * flo / (flo - fhi) } else { 0.5 * (lo + hi) };
-                    let fm = f(m);
-                    if fm > 0.0 {
-                        (lo, flo) = (m, fm);
-                    } else {
-                        (hi, fhi) = (m, fm);
+        for cj in 0..m - 1 {
+            for ci in 0..m - 1 {
+                let q = cj * m + ci;
+                for tri in [[q, q + 1, q + m + 1], [q, q + m + 1, q + m]] {
+                    let (Some(a), Some(b), Some(c)) =
+                        (&vertices[tri[0]], &vertices[tri[1]], &vertices[tri[2]])
+                    else {
+                        continue;
+                    };
+                    let (lo_u, hi_u) = (a.px[0].min(b.px[0]).min(c.px[0]), a.px[0].max(b.px[0]).max(c.px[0]));
+                    let (lo_v, hi_v) = (a.px[1].min(b.px[1]).min(c.px[1]), a.px[1].max(b.px[1]).max(c.px[1]));
+                    if hi_u < 0.0 || hi_v < 0.0 || lo_u > lim || lo_v > lim {
+                        continue;
+                    }
+                    let (i0, i1) = (ceil(lo_u.max(0.0)), hi_u.min(lim) as usize);
+                    let (j0, j1) = (ceil(lo_v.max(0.0)), hi_v.min(lim) as usize);
+                    if i0 > i1 || j0 > j1 {
+                        continue;
+                    }
+                    // Facing the camera: its upward normal toward the eye.
+                    let normal = (b.enu - a.enu).cross(&(c.enu - a.enu));
+                    let normal = if normal.z < 0.0 { -normal } else { normal };
+                    if normal.dot(&(self.origin - a.enu)) <= 0.0 {
+                        continue;
+                    }
+                    let area =
+                        (b.px[0] - a.px[0]) * (c.px[1] - a.px[1]) - (b.px[1] - a.px[1]) * (c.px[0] - a.px[0]);
+                    if area.abs() < 1e-12 {
+                        continue;
+                    }
+                    // Barycentric weights of a and b as affine functions of
+                    // the pixel (i, j); c's is the rest.
+                    let weight = |p: &Vertex, q: &Vertex| {
+                        let (du, dv) = ((q.px[0] - p.px[0]) / area, (q.px[1] - p.px[1]) / area);
+                        [-dv, du, dv * p.px[0] - du * p.px[1]]
+                    };
+                    let (wa, wb) = (weight(b, c), weight(c, a));
+                    for j in j0..=j1 {
+                        let v = j as f64;
+                        for i in i0..=i1 {
+                            let u = i as f64;
+                            let ka = wa[0] * u + wa[1] * v + wa[2];
+                            let kb = wb[0] * u + wb[1] * v + wb[2];
+                            let kc = 1.0 - ka - kb;
+                            if ka < -1e-9 || kb < -1e-9 || kc < -1e-9 {
+                                continue;
+                            }
+                            let k = j * side + i;
+                            let z = ka * a.depth + kb * b.depth + kc * c.depth;
+                            if z >= depth[k] || !keep(i, j) {
+                                continue;
+                            }
+                            depth[k] = z;
+                            out[k] = Some((
+                                ka * a.at[0] + kb * b.at[0] + kc * c.at[0],
+                                ka * a.at[1] + kb * b.at[1] + kc * c.at[1],
+                            ));
+                        }
                     }
                 }
-                let s = if flo - fhi > 1e-12 { lo + (hi - lo) * flo / (flo - fhi) } else { hi };
-                return Some((o.x + s * d.x, o.y + s * d.y));
-            }
-            (a, fa) = (b, fb);
-        }
-        None
-    }
-}
-
-/// Side (patch pixels) of the cells [`relief_hits`] interpolates over.
-const RELIEF_CELL_PX: usize = 4;
-/// A cell is interpolated when the exact hit at its centre is within this
-/// share of a template pixel of its corners' bilinear mean.
-const RELIEF_INTERPOLATION_TOLERANCE: f64 = 0.25;
-
-/// The terrain hit `(east, north)` of every pixel of a `side`-square patch
-/// (row-major), `hit(i, j)` being the exact one (a ray march). The march is
-/// the cost of a relief prediction (80% of an oblique frame's time), and
-/// over smooth terrain the hits vary smoothly: they are marched exactly on a
-/// lattice every [`RELIEF_CELL_PX`] pixels and at each cell's centre, and a
-/// cell whose four corners hit and whose centre agrees with their mean
-/// within `tolerance_m` is filled bilinearly; any other cell (an occlusion
-/// edge, the sky, the image border) is marched pixel by pixel.
-fn relief_hits(
-    side: usize,
-    tolerance_m: f64,
-    hit: impl Fn(usize, usize) -> Option<(f64, f64)>,
-) -> Vec<Option<(f64, f64)>> {
-    let k = RELIEF_CELL_PX;
-    let cells = side.div_ceil(k);
-    let nl = cells + 1;
-    let lattice: Vec<Option<(f64, f64)>> = (0..nl * nl).map(|q| hit((q % nl) * k, (q / nl) * k)).collect();
-    let mut out = vec![None; side * side];
-    for cj in 0..cells {
-        for ci in 0..cells {
-            let corners = [
-                lattice[cj * nl + ci],
-                lattice[cj * nl + ci + 1],
-                lattice[(cj + 1) * nl + ci],
-                lattice[(cj + 1) * nl + ci + 1],
-            ];
-            let smooth = match corners {
-                [Some(a), Some(b), Some(c), Some(d)] => hit(ci * k + k / 2, cj * k + k / 2)
-                    .is_some_and(|m| {
-                        let mean = (0.25 * (a.0 + b.0 + c.0 + d.0), 0.25 * (a.1 + b.1 + c.1 + d.1));
-                        (m.0 - mean.0).hypot(m.1 - mean.1) <= tolerance_m
-                    })
-                    .then_some([a, b, c, d]),
-                _ => None,
-            };
-            for j in cj * k..((cj + 1) * k).min(side) {
-                for i in ci * k..((ci + 1) * k).min(side) {
-                    out[j * side + i] = match smooth {
-                        Some([a, b, c, d]) => {
-                            let (fx, fy) = ((i - ci * k) as f64 / k as f64, (j - cj * k) as f64 / k as f64);
-                            let lerp = |p: f64, q: f64, r: f64, s: f64| {
-                                (p * (1.0 - fx) + q * fx) * (1.0 - fy) + (r * (1.0 - fx) + s * fx) * fy
-                            };
-                            Some((lerp(a.0, b.0, c.0, d.0), lerp(a.1, b.1, c.1, d.1)))
-                        }
-                        None => hit(i, j),
-                    };
-                }
             }
         }
+        out
     }
-    out
 }
 
 /// A template warped into pyramid level `level` of the image.
@@ -210,20 +227,11 @@ pub fn predict(
     let relief = (t.terrain.plane_residual_rms_m > RELIEF_SHARE_OF_GSD * t.gsd_m
         && grid.n >= 2
         && grid.heights_m.len() == (grid.n * grid.n) as usize)
-        .then(|| {
-            let r_enu_ecef = frame.r_ecef_enu().transpose();
-            let (h_lo, h_hi) = grid
-                .heights_m
-                .iter()
-                .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| (l.min(v as f64), h.max(v as f64)));
-            Relief {
-                grid,
-                origin: frame.to_enu(&pose.position).0,
-                r_enu_cam: r_enu_ecef * pose.q_ecef_cam.to_rotation_matrix().matrix(),
-                h_lo: h_lo - 0.01,
-                h_hi: h_hi + 0.01,
-                step_m: 0.5 * grid.spacing_m.min(t.gsd_m * 2.0),
-            }
+        .then(|| ReliefMesh {
+            grid,
+            origin: frame.to_enu(&pose.position).0,
+            r_cam_enu: (frame.r_ecef_enu().transpose() * pose.q_ecef_cam.to_rotation_matrix().matrix())
+                .transpose(),
         });
     // Patch size: the template's extent in level pixels (its outline at the
     // grid's heights when relief is modelled).
@@ -298,15 +306,16 @@ pub fn predict(
         mask[k] = true;
     };
     match &relief {
-        // Through the relief: each pixel's terrain hit (see `relief_hits`).
-        Some(rl) => {
-            let hits = relief_hits(side, RELIEF_INTERPOLATION_TOLERANCE * t.gsd_m, |i, j| {
-                let n = ray(x0 + i as isize, y0 + j as isize)?;
-                rl.hit(n[0] as f64, n[1] as f64)
-            });
-            for (k, hit) in hits.into_iter().enumerate() {
-                if let Some((e, nn)) = hit {
-                    sample(k, e / t.gsd_m + (tw - 1.0) / 2.0, (th - 1.0) / 2.0 - nn / t.gsd_m);
+        // Through the relief: the template's terrain mesh (see `ReliefMesh`).
+        Some(mesh) => {
+            let keep = |i: usize, j: usize| {
+                let (x, y) = (x0 + i as isize, y0 + j as isize);
+                centre_outside || (x >= 0 && y >= 0 && x < *lw as isize && y < *lh as isize)
+            };
+            let at = mesh.rasterize(t, camera, level, side, (x0, y0), keep);
+            for (k, at) in at.into_iter().enumerate() {
+                if let Some((tc, tr)) = at {
+                    sample(k, tc, tr);
                 }
             }
         }
@@ -511,36 +520,40 @@ mod tests {
         );
     }
 
-    /// The lattice's shortcut is exact where the hits are affine, marches
-    /// every pixel of a cell an occlusion edge crosses, and leaves the sky out.
+    /// A slope that faces away from the camera, or lies behind a ridge, is
+    /// hidden: seen low from the east, none of the ridge's west flank (bright
+    /// in the template) shows, and its east flank (dark) fills the patch; seen
+    /// from the west, the other way round.
     #[test]
-    fn relief_hits_interpolate_smooth_cells_and_march_the_rest() {
-        let side = 23;
-        let calls = std::cell::Cell::new(0usize);
-        // Affine: every cell interpolated, equal to the exact hits.
-        let affine = |i: usize, j: usize| {
-            calls.set(calls.get() + 1);
-            Some((3.0 * i as f64 - 1.0 * j as f64, 0.5 * i as f64 + 2.0 * j as f64))
-        };
-        let out = relief_hits(side, 0.1, affine);
-        for j in 0..side {
-            for i in 0..side {
-                let (e, n) = out[j * side + i].unwrap();
-                let (ee, nn) = (3.0 * i as f64 - 1.0 * j as f64, 0.5 * i as f64 + 2.0 * j as f64);
-                assert!((e - ee).abs() < 1e-9 && (n - nn).abs() < 1e-9, "{i} {j}");
+    fn relief_hides_the_far_flank_of_a_ridge() {
+        let camera = CameraModel::from_fov(1024, 768, 30.0);
+        let lut = UndistortLut::new(&camera, 1);
+        let mut t = ridge_template(300.0);
+        // West of the ridge line (column 15.5) bright, east of it dark.
+        for r in 0..32usize {
+            for c in 0..32usize {
+                t.pixels[r * 32 + c] = if c < 15 {
+                    220
+                } else if c > 16 {
+                    30
+                } else {
+                    125
+                };
             }
         }
-        let marched = calls.get();
-        assert!(marched < side * side / 4, "{marched} marches for {} pixels", side * side);
-        // An occlusion edge at column 10 (the far slope jumps 500 m away) and
-        // sky below row 17: those cells are marched, so every pixel is exact.
-        let exact =
-            |i: usize, j: usize| (j < 17).then_some((i as f64 + if i >= 10 { 500.0 } else { 0.0 }, j as f64));
-        let out = relief_hits(side, 0.1, exact);
-        for j in 0..side {
-            for i in 0..side {
-                assert_eq!(out[j * side + i], exact(i, j), "{i} {j}");
-            }
+        let frame = t.local_frame();
+        let centre = t.center_ecef();
+        // The flanks slope at 45 degrees; the camera 6 km away, 3 km up
+        // (27 degrees above the horizon) sees only the near flank.
+        for (east, near, far) in [(6000.0, 30.0, 220.0), (-6000.0, 220.0, 30.0)] {
+            let eye = frame.to_ecef(Enu::new(east, 0.0, 3000.0));
+            let pose = CameraPose::look_at(eye, centre, t.center.up_ecef());
+            let p = predict(&t, &pose, &camera, &lut, 0, 255, 89.0).expect("predicted");
+            let mask = p.patch.mask.as_ref().unwrap();
+            let seen: Vec<f32> = p.patch.data.iter().zip(mask).filter(|x| *x.1).map(|x| *x.0).collect();
+            let count = |v: f64| seen.iter().filter(|&&x| (x as f64 - v).abs() < 1.0).count();
+            assert!(count(near) > 100, "{} near-flank pixels of {}", count(near), seen.len());
+            assert_eq!(count(far), 0, "far flank seen ({} of {})", count(far), seen.len());
         }
     }
 }

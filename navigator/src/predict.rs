@@ -33,8 +33,8 @@ struct ReliefMesh<'a> {
 /// Largest side of a mesh cell (template pixels): each height-grid cell is
 /// cut into cells no wider, four triangles each around the cell's centre.
 /// (Two triangles a cell leave the bilinear surface's twist out, a quarter of
-/// it at the cell's centre: the low pass's first fixes after an acquisition
-/// from 1.5–3 km were 33–38 m off where the centre vertex gives 13–14 m;
+/// it at the cell's centre: the low pass's first fixes after an acquisition told
+/// from 1.5 and 3 km were 38 and 33 m off where the centre vertex gives 13–14 m;
 /// cells of 1 pixel with two triangles cost as much as this.)
 const MESH_CELL_PX: f64 = 2.0;
 

@@ -1,11 +1,12 @@
 //! Landmarks predicted into the camera image: each template is warped into
-//! image pixels as the pose guess would see it (distortion included through
-//! a per-pixel undistortion table), so it can be correlated with the image.
-//! Over flat terrain the warp is the homography the template's terrain plane
-//! induces; where the terrain departs from the plane by more than
-//! [`RELIEF_SHARE_OF_GSD`] of a template pixel, the template's height grid is
-//! drawn into the image instead, as a triangle mesh with a depth buffer (so
-//! relief hides what lies behind it).
+//! image pixels as the pose guess would see it (lens distortion included),
+//! so it can be correlated with the image. Over flat terrain the warp is the
+//! homography the template's terrain plane induces, each pixel's ray from a
+//! per-pixel undistortion table; where the terrain departs from the plane by
+//! more than [`RELIEF_SHARE_OF_GSD`] of a template pixel, the template's
+//! height grid is drawn into the image instead, as a triangle mesh projected
+//! through the lens, with a depth buffer (so relief hides what lies behind
+//! it).
 
 use nalgebra::{Matrix3, Vector3};
 use trn_camera::{CameraModel, CameraPose, Pixel};
@@ -44,11 +45,11 @@ impl ReliefMesh<'_> {
     /// where the template's terrain is what the camera sees there: the height
     /// grid's surface is cut into triangles (vertices on the bilinear surface:
     /// the corners of cells at most [`MESH_CELL_PX`] template pixels wide and
-    /// their centres), each projected through
-    /// the camera (lens included) and filled in the image by its barycentric
-    /// weights; the nearest surface wins (a depth buffer), and triangles that
-    /// face away from the camera are left out, so relief hides what lies
-    /// behind it. `keep(i, j)` says which patch pixels may hold data.
+    /// their centres), each projected through the camera (lens included)
+    /// and filled in the image by its barycentric weights; the nearest
+    /// surface wins (a depth buffer), and triangles that face away from the
+    /// camera are left out, so relief hides what lies behind it. `keep(i, j)`
+    /// says which patch pixels may hold data.
     fn rasterize(
         &self,
         t: &Template,

@@ -506,7 +506,10 @@ const NCC_POSITION_WORK: u64 = 400;
 /// and 10.8 deg off): a prediction took ~11 us and ~27 ns a pixel of its
 /// patch (25 us for an acquisition's 23x23 centre, 113 us for a tracking
 /// frame's 61x61 on average), against ~24 ms per G multiply-adds of an
-/// acquisition's correlation.
+/// acquisition's correlation. (Measured while relief was predicted by a ray
+/// march; drawn as a mesh since, a relief patch costs less and is
+/// over-counted. Kept, so that a lost frame searches the tiles the
+/// acquisition benchmarks were measured with.)
 pub const TEMPLATE_WORK: u64 = 450_000;
 /// The work of predicting one pixel of a template's patch, in correlation
 /// multiply-adds (see [`TEMPLATE_WORK`]).

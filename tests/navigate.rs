@@ -398,8 +398,9 @@ fn a_low_camera_acquires_from_1_5_and_5_km() {
     // fix comes from a tile, kilometres above the guess. The first fix's
     // height gate, at the 20 m/s of a navigator without the inertial filter,
     // refused it and every later one; at the filter's initial velocity doubt
-    // it stands. Found at frame 6, its first fix 119 m off (17 inliers;
-    // 65 m of sigma east, where the rocket's first frames see ~20 landmarks);
+    // it stands. Found at frame 6 (its first fix 119 m off, 17 inliers, 65 m
+    // of sigma east, while relief was ray-marched; the rocket's first frames
+    // see ~20 landmarks);
     // at frame 9 while a template's prediction counted 10^7 multiply-adds of
     // the frame's budget, at frame 10 with whole templates on the tiles'
     // level, at frame 26 with 300 landmarks a tile. Its fixes are

@@ -672,7 +672,10 @@ fn frames_seen_through_a_hole_in_the_cloud_still_update_the_tight_filter() {
     let flight = dir.join("flight");
     copy_flight(&s.flight, &flight);
     // From 1 s on, each image is grey but for a centred box of 0.3 of its
-    // sides: too narrow a spread for a fix, a few matches for the filter.
+    // sides: too narrow a spread for a fix (its inliers are at the spread
+    // test's edge: with the principal point in the filter, the last frame's
+    // 23 pass it), a few matches for the filter. (A box of 0.25 leaves too
+    // few for either: the filter drifts to 18 m.)
     let frames = std::fs::read_to_string(flight.join("frames.csv")).unwrap();
     let mut hole = 0;
     for line in frames.lines().skip(1) {
@@ -711,7 +714,7 @@ fn frames_seen_through_a_hole_in_the_cloud_still_update_the_tight_filter() {
     };
     let (fixes, gated, worst) = run_with("gated.csv", &[]);
     let total = frames.lines().count() as u64 - 1;
-    assert!(fixes <= total - hole, "{fixes} fixes: the box gives none");
+    assert!(fixes <= total - hole + 1, "{fixes} fixes: the box gives at most one");
     assert!(gated * 2 >= hole, "{gated} of {hole} frames through the hole updated the filter");
     assert!(worst < 10.0, "worst error {worst:.1} m");
     let (_, none, _) = run_with("plain.csv", &["--no-prior-gated-update"]);

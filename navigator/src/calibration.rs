@@ -31,7 +31,7 @@
 //! the 99.9% chi-square gate is not used: relief that the database has wrong
 //! shows up as a focal error, and one frame of bad heights must not move it.
 
-use nalgebra::{DMatrix, DVector, Matrix4, Vector4};
+use nalgebra::{DMatrix, DVector, Matrix2, Matrix4, Vector2, Vector4};
 use trn_camera::CameraModel;
 use trn_camera::IntrinsicsCorrection;
 use trn_vision::calib::FrameCalibration;
@@ -90,6 +90,14 @@ impl Default for CalibrationParams {
 /// estimate farther than this from the state (squared Mahalanobis distance
 /// with the state's and the frame's covariances) is not used.
 pub const FRAME_GATE_CHI2: [f64; 4] = [10.83, 13.82, 16.27, 18.47];
+
+/// The intrinsics another filter carries (see
+/// [`CalibrationFilter::pose_covariance_but`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Carried {
+    pub focal: bool,
+    pub principal_point: bool,
+}
 
 /// Index of each intrinsic in the state.
 const FOCAL: usize = 0;
@@ -203,29 +211,30 @@ impl CalibrationFilter {
     /// parameter: a nadir view turns a principal point error into a tilt,
     /// and the tilt into a horizontal shift).
     pub fn pose_covariance(&self, frame: &FrameCalibration) -> nalgebra::Matrix6<f64> {
-        self.pose_covariance_of(frame, true)
+        self.pose_covariance_but(frame, Carried::default())
     }
 
-    /// [`Self::pose_covariance`] without the focal length's share: what
-    /// the other intrinsics add where the inertial filter carries the focal
-    /// length ([`Self::focal_evidence`]).
-    pub fn pose_covariance_but_focal(&self, frame: &FrameCalibration) -> nalgebra::Matrix6<f64> {
-        self.pose_covariance_of(frame, false)
-    }
-
-    fn pose_covariance_of(&self, frame: &FrameCalibration, focal: bool) -> nalgebra::Matrix6<f64> {
+    /// [`Self::pose_covariance`] without the shares of the intrinsics that
+    /// another filter carries (the inertial one: [`Self::focal_evidence`],
+    /// [`Self::shift_principal`]): what the others add.
+    pub fn pose_covariance_but(&self, frame: &FrameCalibration, carried: Carried) -> nalgebra::Matrix6<f64> {
         // A state change dx is the frame's relative correction T dx.
         let s = frame.pose_sensitivity * self.to_state();
         let mut p = self.p;
-        if !focal {
-            for i in 0..4 {
-                p[(FOCAL, i)] = 0.0;
-                p[(i, FOCAL)] = 0.0;
-            }
-        }
         for i in 0..4 {
             if !self.estimated(i) {
                 p[(i, i)] = self.prior_var(i);
+            }
+        }
+        let elsewhere = |i: usize| match i {
+            FOCAL => carried.focal,
+            K1 => false,
+            _ => carried.principal_point,
+        };
+        for i in (0..4).filter(|&i| elsewhere(i)) {
+            for j in 0..4 {
+                p[(i, j)] = 0.0;
+                p[(j, i)] = 0.0;
             }
         }
         s * p * s.transpose()
@@ -325,6 +334,15 @@ impl CalibrationFilter {
         self.updates += 1;
         self.last_update_t = Some(t_frame);
         Some((z, variance))
+    }
+
+    /// Moves the principal point by `d_px` and sets its covariance (px):
+    /// what a filter that carries it (the inertial one) learnt. It stays a
+    /// consider parameter of this filter's own updates, with its prior.
+    pub fn shift_principal(&mut self, d_px: Vector2<f64>, covariance_px: Matrix2<f64>) {
+        self.x[1] += d_px.x;
+        self.x[2] += d_px.y;
+        self.p.fixed_view_mut::<2, 2>(1, 1).copy_from(&((covariance_px + covariance_px.transpose()) * 0.5));
     }
 
     /// Moves the focal length by `relative` of the current camera's and
@@ -427,6 +445,37 @@ mod tests {
         assert!(f.update(21.0, &frame(weak, Vector4::new(0.01, 0.0, 0.0, 0.0))).is_none());
         assert_eq!(f.correction(), before);
         assert_eq!((f.updates, f.refused, f.weak), (20, 1, 1));
+    }
+
+    #[test]
+    fn a_principal_point_carried_elsewhere_leaves_the_pose_covariance_and_moves_the_camera() {
+        // The consider share of each intrinsic in a frame's pose covariance
+        // is S_i var_i S_i^T (independent priors): carried by the inertial
+        // filter, the principal point's share leaves it, the focal
+        // length's stays; a carried focal length takes its share too.
+        let camera = CameraModel::from_fov(640, 480, 40.0);
+        let f = CalibrationFilter::new(camera, params());
+        let mut fr = frame(Matrix4::identity(), Vector4::zeros());
+        fr.pose_sensitivity = SMatrix::<f64, 6, 4>::from_fn(|r, c| ((r * 4 + c) as f64 * 0.7).sin() * 0.01);
+        let share = |i: usize, var: f64| {
+            let col = fr.pose_sensitivity.column(i);
+            col * col.transpose() * var
+        };
+        let (pp_var, focal_var) = (params().principal_sigma_px.powi(2), params().focal_sigma_rel.powi(2));
+        let all = f.pose_covariance(&fr);
+        assert!((all - share(0, focal_var) - share(1, pp_var) - share(2, pp_var)).norm() < 1e-15);
+        let but_pp = f.pose_covariance_but(&fr, Carried { focal: false, principal_point: true });
+        assert!((all - but_pp - share(1, pp_var) - share(2, pp_var)).norm() < 1e-15);
+        let but_both = f.pose_covariance_but(&fr, Carried { focal: true, principal_point: true });
+        assert!(but_both.norm() < 1e-15, "k1 is trusted (prior 0): nothing is left");
+
+        let mut g = f.clone();
+        g.shift_principal(Vector2::new(1.5, -1.0), Matrix2::new(0.25, 0.01, 0.01, 0.16));
+        let (c, p) = (g.correction(), g.covariance());
+        assert_eq!((c.principal_du_px, c.principal_dv_px), (1.5, -1.0));
+        assert_eq!((p[(1, 1)], p[(2, 2)], p[(1, 2)]), (0.25, 0.16, 0.01));
+        let moved = g.camera();
+        assert!((moved.cx - camera.cx - 1.5).abs() < 1e-12 && (moved.cy - camera.cy + 1.0).abs() < 1e-12);
     }
 
     #[test]

@@ -18,7 +18,7 @@
 //! dbg (rad/s, gyro bias, IMU frame); dba (m/s^2, accelerometer bias, IMU
 //! frame); dm (m, map offset); dtau (s, time offset); dm_theta (rad, the
 //! map offset's attitude part); dfocal (relative, the camera's focal
-//! length)]`. Its dynamics (Groves eq. 14.48-14.50):
+//! length); dc (px, the camera's principal point, u and v)]`. Its dynamics (Groves eq. 14.48-14.50):
 //! `dtheta' = -[we]x dtheta - R dbg`, `dr' = dv`,
 //! `dv' = -[R f]x dtheta + Gamma dr - 2 [we]x dv - R dba`, the biases random
 //! walks, and the map offset (both parts) a first-order Gauss-Markov process.
@@ -28,8 +28,17 @@
 //! apart). Where the accelerometer measures the motion the images see
 //! shortened (a rocket's climb: the range grows by kilometres per second),
 //! the two part: the apparent pose is `[...] - S dfocal`, `S` the frame's
-//! [`FocalSensitivity`], and the focal error is a state (a random walk)
+//! [`IntrinsicsSensitivity`], and the focal error is a state (a random walk)
 //! whenever its prior is not zero.
+//!
+//! **Principal point.** A principal point off by `dc` pixels turns the pose
+//! a frame's matches give, mostly as a tilt of the camera (and, for a
+//! narrow view, the tilt as a shift along the ground): the apparent pose is
+//! `[...] - S_c dc`, `S_c` the frame's sensitivity to it. The offset is
+//! fixed in the camera, so where the camera turns about its boresight (a
+//! rocket's roll, a balloon's spin) or the accelerometer pins the tilt, it
+//! parts from an attitude or position error; it is a state (a random walk,
+//! two pixels) whenever its prior is not zero.
 //!
 //! **Map offset.** The landmarks are not the world: a database whose heights
 //! or orthoimage are off by tens of metres shifts every fix from the same
@@ -53,7 +62,9 @@
 //! whitened linear measurement (with a nuisance), as the landmark tracks
 //! between frames give ([`crate::track`]).
 
-use nalgebra::{DMatrix, DVector, Matrix3, Matrix6, SMatrix, UnitQuaternion, Vector3, Vector6};
+use nalgebra::{
+    DMatrix, DVector, Matrix2, Matrix3, Matrix6, SMatrix, UnitQuaternion, Vector2, Vector3, Vector6,
+};
 use trn_camera::CameraPose;
 use trn_flight::ImuSample;
 use trn_geodesy::gravity::{gravitation_gradient, gravity_ecef};
@@ -63,7 +74,7 @@ use trn_vision::pnp::rotation_vector;
 use crate::propagate::{for_each_segment, strapdown_increment};
 
 /// Dimension of the error state.
-pub const N: usize = 23;
+pub const N: usize = 25;
 /// Offsets of the error state's blocks.
 pub const ATT: usize = 0;
 pub const POS: usize = 3;
@@ -74,6 +85,8 @@ pub const MAP: usize = 15;
 pub const TIME: usize = 18;
 pub const MAP_ATT: usize = 19;
 pub const FOCAL: usize = 22;
+/// The principal point's error (u, v pixels).
+pub const PRINCIPAL: usize = 23;
 
 pub type Covariance = SMatrix<f64, N, N>;
 
@@ -102,6 +115,8 @@ pub struct InsErrors {
     pub map_att_sigma_rad: f64,
     /// Random walk of the camera's focal length (relative, per sqrt(s)).
     pub focal_walk_rel_sqrt_s: f64,
+    /// Random walk of the camera's principal point (px per sqrt(s)).
+    pub principal_walk_px_sqrt_s: f64,
 }
 
 /// Initial uncertainty (1 sigma per axis).
@@ -116,6 +131,8 @@ pub struct InsInit {
     pub time_offset_s: f64,
     /// The camera's focal length (relative; 0: not estimated).
     pub focal_rel: f64,
+    /// The camera's principal point (px per axis; 0: not estimated).
+    pub principal_px: f64,
 }
 
 /// The estimated state (the nominal state of the error-state filter).
@@ -151,6 +168,10 @@ pub struct InsFilter {
     /// `1 + this`); the owner of the camera takes it with
     /// [`Self::take_focal_error`], which restarts it at zero.
     pub focal_error_rel: f64,
+    /// The estimated error of the principal point of that camera (px, u
+    /// and v: the true one is that camera's plus this); taken with
+    /// [`Self::take_principal_error`].
+    pub principal_error_px: Vector2<f64>,
 }
 
 fn block(p: &mut Covariance, at: usize, sigma: f64) {
@@ -200,7 +221,10 @@ impl InsFilter {
         block(&mut p, MAP_ATT, errors.map_att_sigma_rad);
         p[(TIME, TIME)] = init.time_offset_s * init.time_offset_s;
         p[(FOCAL, FOCAL)] = init.focal_rel * init.focal_rel;
-        Self { state, covariance: p, errors, focal_error_rel: 0.0 }
+        for i in PRINCIPAL..PRINCIPAL + 2 {
+            p[(i, i)] = init.principal_px * init.principal_px;
+        }
+        Self { state, covariance: p, errors, focal_error_rel: 0.0, principal_error_px: Vector2::zeros() }
     }
 
     /// Carries the state and covariance to `t1` through the IMU samples
@@ -295,6 +319,11 @@ impl InsFilter {
         if self.covariance[(FOCAL, FOCAL)] > 0.0 {
             acc.q[FOCAL] += e.focal_walk_rel_sqrt_s.powi(2) * dt;
         }
+        if self.estimates_principal_point() {
+            for i in PRINCIPAL..PRINCIPAL + 2 {
+                acc.q[i] += e.principal_walk_px_sqrt_s.powi(2) * dt;
+            }
+        }
         acc.dt += dt;
         acc.map_decay *= decay;
         if acc.dt >= COVARIANCE_STEP_S {
@@ -343,9 +372,9 @@ impl InsFilter {
     }
 
     /// `H` of the apparent camera pose `[dtheta + dm_theta + w dtau; dr + dm
-    /// + v dtau]`, solved with a camera whose focal length may be off:
-    /// `- S dfocal` added (see [`FocalSensitivity`]).
-    fn pose_rows_with(&self, focal: &FocalSensitivity) -> SMatrix<f64, 6, N> {
+    /// + v dtau]`, solved with a camera whose focal length and principal
+    /// point may be off: `- S [dfocal; dc]` added (see [`IntrinsicsSensitivity`]).
+    fn pose_rows_with(&self, sensitivity: &IntrinsicsSensitivity) -> SMatrix<f64, 6, N> {
         let mut h = SMatrix::<f64, 6, N>::zeros();
         h.fixed_view_mut::<3, 3>(0, ATT).copy_from(&Matrix3::identity());
         h.fixed_view_mut::<3, 3>(3, POS).copy_from(&Matrix3::identity());
@@ -353,8 +382,13 @@ impl InsFilter {
         h.fixed_view_mut::<3, 3>(0, MAP_ATT).copy_from(&Matrix3::identity());
         h.fixed_view_mut::<3, 1>(0, TIME).copy_from(&self.state.rate_ecef_rad_s);
         h.fixed_view_mut::<3, 1>(3, TIME).copy_from(&self.state.velocity_ecef_m_s);
-        h.fixed_view_mut::<6, 1>(0, FOCAL).copy_from(&-focal.0);
+        h.fixed_view_mut::<6, 3>(0, FOCAL).copy_from(&-sensitivity.0);
         h
+    }
+
+    /// The intrinsics' errors the filter carries: `[dfocal; dc]`.
+    fn intrinsics_error(&self) -> Vector3<f64> {
+        Vector3::new(self.focal_error_rel, self.principal_error_px.x, self.principal_error_px.y)
     }
 
     /// How the time offset moves the pose an image sees: `[w tau; v tau]`.
@@ -367,19 +401,20 @@ impl InsFilter {
     /// over the time offset) and its covariance (`[dtheta; dp]`, as
     /// `trn_vision::pnp`'s).
     pub fn apparent_pose(&self, q_imu_cam: &UnitQuaternion<f64>) -> (CameraPose, Matrix6<f64>) {
-        self.apparent_pose_with(q_imu_cam, &FocalSensitivity::NONE)
+        self.apparent_pose_with(q_imu_cam, &IntrinsicsSensitivity::NONE)
     }
 
     /// [`Self::apparent_pose`] as a frame solved with the current camera
-    /// sees it, its focal length uncertain ([`FocalSensitivity`]).
+    /// sees it, its focal length and principal point uncertain
+    /// ([`IntrinsicsSensitivity`]).
     pub fn apparent_pose_with(
         &self,
         q_imu_cam: &UnitQuaternion<f64>,
-        focal: &FocalSensitivity,
+        sensitivity: &IntrinsicsSensitivity,
     ) -> (CameraPose, Matrix6<f64>) {
-        let h = self.pose_rows_with(focal);
+        let h = self.pose_rows_with(sensitivity);
         let s = &self.state;
-        let shift = self.time_shift() - focal.0 * self.focal_error_rel;
+        let shift = self.time_shift() - sensitivity.0 * self.intrinsics_error();
         let pose = CameraPose::new(
             Ecef(s.position.0 + s.map_offset_ecef_m),
             UnitQuaternion::from_scaled_axis(s.map_offset_att_rad) * s.q_ecef_imu * q_imu_cam,
@@ -438,23 +473,24 @@ impl InsFilter {
         posterior: &CameraPose,
         posterior_cov: &Matrix6<f64>,
     ) -> bool {
-        self.condition_on_pose_with(q_imu_cam, posterior, posterior_cov, &FocalSensitivity::NONE)
+        self.condition_on_pose_with(q_imu_cam, posterior, posterior_cov, &IntrinsicsSensitivity::NONE)
     }
 
     /// [`Self::condition_on_pose`] with a posterior computed with
-    /// [`Self::apparent_pose_with`] as its prior: the focal length's error
-    /// moves with the pose by its correlation with it, which the inertial
-    /// trajectory builds (a rocket's climb, measured by the accelerometer,
-    /// against the range the images see).
+    /// [`Self::apparent_pose_with`] as its prior: the focal length's and
+    /// the principal point's errors move with the pose by their correlation
+    /// with it, which the inertial trajectory builds (a rocket's climb,
+    /// measured by the accelerometer, against the range the images see; a
+    /// camera's roll about its boresight, against a tilt fixed in it).
     pub fn condition_on_pose_with(
         &mut self,
         q_imu_cam: &UnitQuaternion<f64>,
         posterior: &CameraPose,
         posterior_cov: &Matrix6<f64>,
-        focal: &FocalSensitivity,
+        sensitivity: &IntrinsicsSensitivity,
     ) -> bool {
-        let h = self.pose_rows_with(focal);
-        let (pred, m) = self.apparent_pose_with(q_imu_cam, focal);
+        let h = self.pose_rows_with(sensitivity);
+        let (pred, m) = self.apparent_pose_with(q_imu_cam, sensitivity);
         let Some(m_inv) = m.cholesky().map(|c| c.inverse()) else { return false };
         let k = self.covariance * h.transpose() * m_inv;
         let dx = k * pose_difference(posterior, &pred);
@@ -571,6 +607,7 @@ impl InsFilter {
         s.map_offset_att_rad += v(MAP_ATT);
         s.time_offset_s += dx[TIME];
         self.focal_error_rel += dx[FOCAL];
+        self.principal_error_px += Vector2::new(dx[PRINCIPAL], dx[PRINCIPAL + 1]);
     }
 
     /// A direct measurement of the focal length's error (relative to the
@@ -602,6 +639,18 @@ impl InsFilter {
     pub fn take_focal_error(&mut self) -> (f64, f64) {
         let d = std::mem::take(&mut self.focal_error_rel);
         (d, self.covariance[(FOCAL, FOCAL)])
+    }
+
+    /// Whether the principal point is a state (its prior was not zero).
+    pub fn estimates_principal_point(&self) -> bool {
+        self.covariance[(PRINCIPAL, PRINCIPAL)] > 0.0
+    }
+
+    /// The principal point's estimated error and its covariance (px); the
+    /// error restarts at zero: the caller moves its camera by it.
+    pub fn take_principal_error(&mut self) -> (Vector2<f64>, Matrix2<f64>) {
+        let d = std::mem::take(&mut self.principal_error_px);
+        (d, self.covariance.fixed_view::<2, 2>(PRINCIPAL, PRINCIPAL).into_owned())
     }
 
     /// The map offset's 1-sigmas (m per axis, rad per axis).
@@ -714,6 +763,8 @@ impl InsFilter {
     /// the fix's. (Dropping those terms would say the fix measured the true
     /// pose: every later fix's disagreement would go to the map offset, and
     /// the first fix's error would stay for the offset's correlation time.)
+    /// The intrinsics the filter carries enter as the other offsets do, by
+    /// the fix's `sensitivity` to them.
     /// The velocity's uncertainty is at least `velocity_sigma_m_s`.
     pub fn reset_pose(
         &mut self,
@@ -721,8 +772,10 @@ impl InsFilter {
         fix: &CameraPose,
         fix_cov: &Matrix6<f64>,
         velocity_sigma_m_s: f64,
+        sensitivity: &IntrinsicsSensitivity,
     ) {
-        let at_stamp = perturb(fix, &-self.time_shift());
+        let shift = self.time_shift() - sensitivity.0 * self.intrinsics_error();
+        let at_stamp = perturb(fix, &-shift);
         let s = &mut self.state;
         s.q_ecef_imu = UnitQuaternion::from_scaled_axis(-s.map_offset_att_rad)
             * at_stamp.q_ecef_cam
@@ -733,7 +786,7 @@ impl InsFilter {
         for i in VEL..VEL + 3 {
             p[(i, i)] = p[(i, i)].max(velocity_sigma_m_s * velocity_sigma_m_s);
         }
-        let mut h_other = self.pose_rows_with(&FocalSensitivity::NONE);
+        let mut h_other = self.pose_rows_with(sensitivity);
         h_other.fixed_view_mut::<6, 6>(0, ATT).fill(0.0);
         let cross = -h_other * p;
         let pose_block = fix_cov + h_other * p * h_other.transpose();
@@ -753,17 +806,33 @@ fn uncorrelate(p: &mut Covariance, range: std::ops::Range<usize>) {
 }
 
 /// How a pose solved from a frame's matches moves per unit of the camera's
-/// relative focal length error (`[dtheta (rad, ECEF); dp (m, ECEF)]`, the
-/// focal column of `trn_vision::calib::FrameCalibration::pose_sensitivity`):
-/// a pose solved with a camera whose focal length is short by `e` is the
-/// true pose less `S e` (a nadir view's range, shortened by the focal
-/// error's share).
+/// relative focal length error and per pixel of its principal point's
+/// (`[dtheta (rad, ECEF); dp (m, ECEF)]` per column: focal, u, v; the first
+/// three columns of `trn_vision::calib::FrameCalibration::pose_sensitivity`):
+/// a pose solved with a camera whose focal length is short by `e` (principal
+/// point off by `dc`) is the true pose less `S [e; dc]` (a nadir view's
+/// range, shortened by the focal error's share; its attitude, tilted by
+/// the principal point's).
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct FocalSensitivity(pub Vector6<f64>);
+pub struct IntrinsicsSensitivity(pub SMatrix<f64, 6, 3>);
 
-impl FocalSensitivity {
-    /// No focal error modelled.
-    pub const NONE: Self = Self(Vector6::new(0.0, 0.0, 0.0, 0.0, 0.0, 0.0));
+impl IntrinsicsSensitivity {
+    /// No intrinsics' error modelled.
+    pub const NONE: Self = Self(SMatrix::<f64, 6, 3>::new(
+        0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+    ));
+
+    /// The focal length's column alone.
+    pub fn focal(column: Vector6<f64>) -> Self {
+        let mut s = Self::NONE;
+        s.0.set_column(0, &column);
+        s
+    }
+
+    /// From a frame's `pose_sensitivity` (columns focal, u, v, k1).
+    pub fn of_frame(pose_sensitivity: &SMatrix<f64, 6, 4>) -> Self {
+        Self(pose_sensitivity.fixed_columns::<3>(0).into_owned())
+    }
 }
 
 /// The result of [`InsFilter::linear_update`].
@@ -950,6 +1019,7 @@ mod tests {
             map_tau_s: 0.0,
             map_att_sigma_rad: 0.0,
             focal_walk_rel_sqrt_s: 0.0,
+            principal_walk_px_sqrt_s: 0.0,
         }
     }
 
@@ -962,6 +1032,7 @@ mod tests {
             accel_bias_m_s2: 0.02,
             time_offset_s: 0.0,
             focal_rel: 0.0,
+            principal_px: 0.0,
         }
     }
 
@@ -1115,7 +1186,8 @@ mod tests {
                 let truth = turn.at(t);
                 let cam = CameraPose::new(Ecef(truth.p), truth.q * q_imu_cam);
                 let b = cam.q_ecef_cam * Vector3::z();
-                let sensitivity = FocalSensitivity(Vector6::new(0.0, 0.0, 0.0, -b.x, -b.y, -b.z) * range);
+                let sensitivity =
+                    IntrinsicsSensitivity::focal(Vector6::new(0.0, 0.0, 0.0, -b.x, -b.y, -b.z) * range);
                 let mut d = Vector6::zeros();
                 d.fixed_rows_mut::<3>(0).copy_from(&draw(1e-4));
                 d.fixed_rows_mut::<3>(3).copy_from(&(draw(5.0) + b * (range * focal_true)));
@@ -1166,6 +1238,88 @@ mod tests {
     }
 
     #[test]
+    fn the_principal_point_is_learnt_where_the_camera_turns_about_its_boresight() {
+        // A principal point off by `dc` pixels makes every frame solved with
+        // the nominal camera look tilted by `(dv, -du) / f` about the
+        // camera's own x and y axes: apparent = true - S dc with
+        // `S = [R_ecef_cam [0, -1/f; 1/f, 0; 0, 0] (negated); 0]`. On the
+        // constant turn a nadir camera turns about its boresight, 344
+        // degrees in 60 s: the tilt turns with it in ECEF, which an attitude
+        // error (carried by the gyro) does not. The attitude is known to 2
+        // degrees only, so the first frames cannot tell the tilt from it.
+        let turn = Turn::new();
+        let (e, mut i) = (errors(), init());
+        i.attitude_rad = 2f64.to_radians();
+        i.position_m = 1000.0;
+        let (imu, _, _) = turn.imu(100.0, 61.0, Some((&e, &i, 13)));
+        let (f_px, dc_true) = (1000.0, Vector2::new(1.5, -1.0));
+        let run = |principal_px: f64| -> (InsFilter, f64, f64) {
+            let mut f = InsFilter::new(turn.state(0.0), &InsInit { principal_px, ..i }, e);
+            let mut rng = Rng::new(14);
+            let mut draw = |sigma: f64| Vector3::new(rng.normal(), rng.normal(), rng.normal()) * sigma;
+            let r = Matrix6::from_diagonal(&Vector6::new(1e-8, 1e-8, 1e-8, 25.0, 25.0, 25.0));
+            let mut sigma_after_2 = 0.0;
+            for k in 1..=60 {
+                let t = k as f64;
+                f.propagate(t, &imu);
+                let truth = turn.at(t);
+                let cam = CameraPose::new(Ecef(truth.p), truth.q);
+                let r_ecef_cam = cam.q_ecef_cam.to_rotation_matrix().into_inner();
+                let mut s = SMatrix::<f64, 6, 3>::zeros();
+                s.fixed_view_mut::<3, 1>(0, 1).copy_from(&(r_ecef_cam * Vector3::new(0.0, 1.0 / f_px, 0.0)));
+                s.fixed_view_mut::<3, 1>(0, 2).copy_from(&(r_ecef_cam * Vector3::new(-1.0 / f_px, 0.0, 0.0)));
+                let sensitivity = IntrinsicsSensitivity(s);
+                let mut d = Vector6::zeros();
+                let tilt = r_ecef_cam * Vector3::new(dc_true.y / f_px, -dc_true.x / f_px, 0.0);
+                d.fixed_rows_mut::<3>(0).copy_from(&(draw(1e-4) + tilt));
+                d.fixed_rows_mut::<3>(3).copy_from(&draw(5.0));
+                // apparent - true = -S dc
+                assert!((tilt + s.fixed_view::<3, 2>(0, 1) * dc_true).norm() < 1e-15);
+                let seen = perturb(&cam, &d);
+                let (pred, m) = f.apparent_pose_with(&UnitQuaternion::identity(), &sensitivity);
+                let s_inv = (m + r).try_inverse().unwrap();
+                let posterior = perturb(&pred, &(m * s_inv * pose_difference(&seen, &pred)));
+                let post_cov = m - m * s_inv * m;
+                let post_cov = (post_cov + post_cov.transpose()) * 0.5;
+                assert!(f.condition_on_pose_with(
+                    &UnitQuaternion::identity(),
+                    &posterior,
+                    &post_cov,
+                    &sensitivity
+                ));
+                if k == 2 {
+                    sigma_after_2 = f.covariance[(PRINCIPAL, PRINCIPAL)].sqrt();
+                }
+            }
+            let att_err = rotation_vector(&(turn.at(60.0).q * f.state.q_ecef_imu.inverse())).norm();
+            (f, att_err, sigma_after_2)
+        };
+        let (mut with, att_with, sigma_2) = run(3.0);
+        assert!(with.estimates_principal_point());
+        let (est, cov) = with.take_principal_error();
+        let sigma = Vector2::new(cov[(0, 0)].sqrt(), cov[(1, 1)].sqrt());
+        println!(
+            "principal point: {:+.3} {:+.3} px +- {:.3} {:.3} (truth +1.5 -1.0; +- {sigma_2:.2} after 2 frames), attitude {:.3} mrad off",
+            est.x,
+            est.y,
+            sigma.x,
+            sigma.y,
+            att_with * 1e3
+        );
+        let (without, att_without, _) = run(0.0);
+        assert!(!without.estimates_principal_point());
+        println!("attitude without the state: {:.3} mrad off", att_without * 1e3);
+        assert!(sigma_2 > 1.0, "two frames cannot tell the tilt from the attitude: {sigma_2}");
+        // From 3 px to under 0.6 (the gyro's 10 deg/h bias, fixed in the
+        // body, also turns with it: the rest of the ambiguity).
+        assert!(sigma.max() < 0.6, "{sigma}");
+        assert!(((est - dc_true).component_div(&sigma)).abs().max() < 3.0, "{est} {sigma}");
+        assert_eq!(with.principal_error_px, Vector2::zeros(), "taken");
+        // Without the state the attitude follows the tilt (1.8 mrad).
+        assert!(att_with < 0.5 * att_without && att_without > 1.5e-3, "{att_with} {att_without}");
+    }
+
+    #[test]
     fn conditioning_on_a_pose_posterior_is_the_kalman_update() {
         // update_with_pose goes through condition_on_pose; check it against
         // the textbook update with H = [I6 0 ...] (map offset on), P random.
@@ -1189,7 +1343,7 @@ mod tests {
         let (pred, _) = f.apparent_pose(&q_imu_cam);
         let y = Vector6::new(2e-4, -1e-4, 3e-4, 12.0, -7.0, 4.0);
         let r = Matrix6::from_diagonal(&Vector6::new(1e-7, 1e-7, 1e-7, 30.0, 30.0, 30.0));
-        let h = f.pose_rows_with(&FocalSensitivity::NONE);
+        let h = f.pose_rows_with(&IntrinsicsSensitivity::NONE);
         let p = f.covariance;
         let s = h * p * h.transpose() + r;
         let k = p * h.transpose() * s.try_inverse().unwrap();
@@ -1306,7 +1460,7 @@ mod tests {
         assert!(f.covariance.fixed_view::<15, 15>(0, 0).into_owned().cholesky().is_some());
         let fix = CameraPose::new(Ecef(turn.at(2.0).p + Vector3::new(300.0, 0.0, 0.0)), turn.at(2.0).q);
         let cov = Matrix6::identity() * 100.0;
-        f.reset_pose(&UnitQuaternion::identity(), &fix, &cov, 50.0);
+        f.reset_pose(&UnitQuaternion::identity(), &fix, &cov, 50.0, &IntrinsicsSensitivity::NONE);
         assert_eq!(f.state.position, fix.position);
         assert_eq!(f.covariance.fixed_view::<6, 6>(0, 0).into_owned(), cov);
         assert_eq!(f.covariance[(POS, VEL)], 0.0);
@@ -1393,7 +1547,7 @@ mod tests {
         let v = f.covariance[(MAP_ATT, MAP_ATT)];
         assert!((v - e.map_att_sigma_rad.powi(2)).abs() < 0.01 * v, "{v}");
         let fix = CameraPose::new(Ecef(turn.at(10.0).p + Vector3::new(30.0, 0.0, 0.0)), turn.at(10.0).q);
-        f.reset_pose(&q, &fix, &(Matrix6::identity() * 100.0), 10.0);
+        f.reset_pose(&q, &fix, &(Matrix6::identity() * 100.0), 10.0, &IntrinsicsSensitivity::NONE);
         let (apparent, _) = f.apparent_pose(&q);
         assert!(pose_difference(&apparent, &fix).norm() < 1e-9);
     }
@@ -1423,7 +1577,7 @@ mod tests {
             r[(k, k)] = 1e-10;
             r[(k + 3, k + 3)] = 4.0;
         }
-        f.reset_pose(&q, &fix, &r, 0.0);
+        f.reset_pose(&q, &fix, &r, 0.0, &IntrinsicsSensitivity::NONE);
         let (apparent, apparent_cov) = f.apparent_pose(&q);
         assert!(pose_difference(&apparent, &fix).norm() < 1e-9);
         for a in 0..6 {

@@ -19,9 +19,10 @@ use trn_vision::pnp::{
 use trn_vision::ransac::{ransac_p3p, RansacParams};
 
 use crate::attitude::{AttitudeFilter, GyroErrors};
+use crate::calibration::Carried as CarriedIntrinsics;
 use crate::calibration::{CalibrationFilter, CalibrationParams};
 use crate::image::{GreyImage, Pyramid, UndistortLut};
-use crate::ins::{FocalSensitivity, InsErrors, InsFilter, InsInit, InsState, FOCAL};
+use crate::ins::{InsErrors, InsFilter, InsInit, InsState, IntrinsicsSensitivity, FOCAL};
 use crate::predict::{predict, Predicted};
 use crate::propagate::propagate_with_bias;
 use crate::track::{track_update, TrackAnchor, TrackParams, TrackPoint};
@@ -155,6 +156,13 @@ pub struct NavParams {
     /// (2 mg) tells a rocket's focal error only to 0.25%, and a balloon's
     /// pendulum lets the map's errors pass for a focal error (README).
     pub inertial_focal: bool,
+    /// With the tight filter and a self-calibration that does not estimate
+    /// the principal point itself, the filter carries the principal point as
+    /// two states (the default): its error is a tilt fixed in the camera,
+    /// which a roll about the boresight or the accelerometer's tilt tells
+    /// from an attitude or position error. (Off, it is a consider parameter
+    /// of each fix's covariance, with its prior.)
+    pub inertial_principal_point: bool,
     pub track: TrackParams,
     /// A frame whose image-only pose is farther than this from the inertial
     /// filter's prediction (chi-square, 6 degrees of freedom) is rejected as
@@ -215,6 +223,7 @@ impl Default for NavParams {
             prior_gated_update: true,
             track_update: true,
             inertial_focal: false,
+            inertial_principal_point: true,
             track: TrackParams::default(),
             // 99.9% of chi-square with 6 degrees of freedom.
             innovation_gate_chi2: 22.46,
@@ -677,6 +686,10 @@ impl<'a> Navigator<'a> {
                 && params.inertial_focal
                 && CalibrationFilter::new(camera.model, *c).focal_only()
         });
+        // The calibration whose principal point the inertial filter carries.
+        let principal_prior = params.calibration.filter(|c| {
+            params.filter == FilterMode::Tight && params.inertial_principal_point && !c.principal_point
+        });
         let ins = (params.filter != FilterMode::Fixes && params.use_gyro).then(|| {
             let q_imu_cam = camera.q_cam_imu().inverse();
             let state = InsState {
@@ -703,6 +716,7 @@ impl<'a> Navigator<'a> {
                     accel_bias_m_s2: params.accel_bias_m_s2,
                     time_offset_s: params.time_offset_sigma_s,
                     focal_rel: focal_prior.map_or(0.0, |c| c.focal_sigma_rel),
+                    principal_px: principal_prior.map_or(0.0, |c| c.principal_sigma_px),
                 },
                 InsErrors {
                     gyro_arw_rad_sqrt_s: deg_s(params.gyro_arw_deg_sqrt_s),
@@ -714,6 +728,7 @@ impl<'a> Navigator<'a> {
                     map_tau_s: params.map_tau_s,
                     map_att_sigma_rad: map_start.1.to_radians(),
                     focal_walk_rel_sqrt_s: focal_prior.map_or(0.0, |c| c.focal_walk_rel_sqrt_s),
+                    principal_walk_px_sqrt_s: principal_prior.map_or(0.0, |c| c.principal_walk_px_sqrt_s),
                 },
             )
         });
@@ -864,7 +879,7 @@ impl<'a> Navigator<'a> {
     /// Moves the camera (and `pose`, solved with it, by `sensitivity`) by
     /// the focal error the inertial filter has estimated, which restarts
     /// at zero.
-    fn take_focal(&mut self, f: &mut InsFilter, pose: Option<(&mut CameraPose, &FocalSensitivity)>) {
+    fn take_focal(&mut self, f: &mut InsFilter, pose: Option<(&mut CameraPose, &IntrinsicsSensitivity)>) {
         let Some(cal) = &mut self.calibration else { return };
         let (d, var) = f.take_focal_error();
         cal.shift_focal(d, var);
@@ -877,7 +892,38 @@ impl<'a> Navigator<'a> {
             d * 100.0
         );
         if let Some((pose, s)) = pose {
-            *pose = perturb_pose(pose, &(s.0 * d));
+            *pose = perturb_pose(pose, &(s.0.column(0) * d));
+        }
+    }
+
+    /// Moves the camera's principal point by the error the inertial filter
+    /// has estimated, which restarts at zero.
+    fn take_principal_point(&mut self, f: &mut InsFilter) {
+        let Some(cal) = &mut self.calibration else { return };
+        let (d, cov) = f.take_principal_error();
+        cal.shift_principal(d, cov);
+        self.camera = cal.camera();
+        let c = cal.correction();
+        debug!(
+            "t {:.3}: principal point {:+.2} {:+.2} px +- {:.2} {:.2} (the inertial filter moved it {:+.2} {:+.2})",
+            f.state.t,
+            c.principal_du_px,
+            c.principal_dv_px,
+            cov[(0, 0)].sqrt(),
+            cov[(1, 1)].sqrt(),
+            d.x,
+            d.y
+        );
+    }
+
+    /// The intrinsics the inertial filter in `filter` carries.
+    fn carried_intrinsics(filter: &Carried) -> CarriedIntrinsics {
+        match filter {
+            Carried::Ins(f) => CarriedIntrinsics {
+                focal: f.estimates_focal(),
+                principal_point: f.estimates_principal_point(),
+            },
+            _ => CarriedIntrinsics::default(),
         }
     }
 
@@ -939,16 +985,17 @@ impl<'a> Navigator<'a> {
             "t {t:.3}: calibration evidence: focal {frame_focal:+.5} sigma {frame_sigma:.5} ({} inliers, rms {rms:.2} px)",
             sol.inliers,
         );
+        let carried = Self::carried_intrinsics(filter);
         if let Some(f) = Self::focal_carrier(filter) {
             let prior_var = f.covariance[(FOCAL, FOCAL)];
             if let Some((z, var)) = cal.focal_evidence(t, &frame, prior_var) {
                 f.focal_measurement(z, var);
-                let sensitivity = FocalSensitivity(frame.pose_sensitivity.column(0).into_owned());
+                let sensitivity = IntrinsicsSensitivity::of_frame(&frame.pose_sensitivity);
                 self.take_focal(f, Some((&mut sol.pose, &sensitivity)));
                 debug!("t {t:.3}: calibration: the frame's focal evidence updated the inertial filter");
             }
             let cal = self.calibration.as_ref().expect("checked above");
-            return cal.pose_covariance_but_focal(&frame);
+            return cal.pose_covariance_but(&frame, carried);
         }
         match cal.update(t, &frame) {
             Some(step) => {
@@ -972,7 +1019,7 @@ impl<'a> Navigator<'a> {
                 debug!("t {t:.3}: calibration: frame not used (too weak, or inconsistent with the estimate)")
             }
         }
-        cal.pose_covariance(&frame)
+        cal.pose_covariance_but(&frame, carried)
     }
 
     /// Before the first fix, a frame that gave none says the initial guess
@@ -1051,7 +1098,7 @@ impl<'a> Navigator<'a> {
         mut f: InsFilter,
         sol: &Solution,
         calibration_cov: Matrix6<f64>,
-        focal: &FocalSensitivity,
+        sensitivity: &IntrinsicsSensitivity,
     ) -> Matrix6<f64> {
         let q = self.q_imu_cam;
         if let Some(gsd) = sol.median_gsd_m {
@@ -1088,7 +1135,7 @@ impl<'a> Navigator<'a> {
                 self.guess_doubted = false;
                 if let Some(r) = self.refine_inliers(sol, None) {
                     debug!("t {t:.3}: acquired: the filter's pose restarts from the image's");
-                    f.reset_pose(&q, &r.pose, &(r.covariance + calibration_cov), 0.0);
+                    f.reset_pose(&q, &r.pose, &(r.covariance + calibration_cov), 0.0, sensitivity);
                     if f.forget_velocity_beyond(self.params.init_velocity_sigma_m_s) {
                         debug!("t {t:.3}: the velocity, doubted beyond the initial guess's, restarts as it");
                     }
@@ -1100,15 +1147,18 @@ impl<'a> Navigator<'a> {
                 }
             }
             _ => {
-                // Where the filter carries the focal length, the frame's
-                // pose moves with its error (`focal`).
-                let focal = if f.estimates_focal() { *focal } else { FocalSensitivity::NONE };
-                let (pose, covariance) = f.apparent_pose_with(&q, &focal);
+                // Where the filter carries the focal length or the principal
+                // point, the frame's pose moves with their errors (the
+                // columns of the others meet zero variances).
+                let (pose, covariance) = f.apparent_pose_with(&q, sensitivity);
                 if let Some(r) = self.refine_inliers(sol, Some(PosePrior { pose, covariance })) {
-                    f.condition_on_pose_with(&q, &r.pose, &r.covariance, &focal);
+                    f.condition_on_pose_with(&q, &r.pose, &r.covariance, sensitivity);
                 }
                 if f.estimates_focal() {
                     self.take_focal(&mut f, None);
+                }
+                if f.estimates_principal_point() {
+                    self.take_principal_point(&mut f);
                 }
             }
         }
@@ -1237,8 +1287,8 @@ impl<'a> Navigator<'a> {
                 rejected = rejection;
                 let accepted = rejection.is_none();
                 if accepted {
-                    let focal = frame.as_ref().map_or(FocalSensitivity::NONE, |fr| {
-                        FocalSensitivity(fr.pose_sensitivity.column(0).into_owned())
+                    let sensitivity = frame.as_ref().map_or(IntrinsicsSensitivity::NONE, |fr| {
+                        IntrinsicsSensitivity::of_frame(&fr.pose_sensitivity)
                     });
                     let calibration_cov = self.calibrate(t, &mut sol, frame, &mut pred.filter);
                     self.last_fix = Some((t, sol.pose));
@@ -1250,7 +1300,7 @@ impl<'a> Navigator<'a> {
                     self.alternation = 0;
                     self.wide_too_wide = false;
                     let ecef = match pred.filter {
-                        Carried::Ins(f) => self.accept_ins(t, f, &sol, calibration_cov, &focal),
+                        Carried::Ins(f) => self.accept_ins(t, f, &sol, calibration_cov, &sensitivity),
                         Carried::Attitude(attitude) => {
                             self.accept_fix(t, &pred.guess, &attitude, &sol) + calibration_cov
                         }
@@ -2806,6 +2856,7 @@ mod tests {
             accel_bias_m_s2: 0.01,
             time_offset_s: 0.0,
             focal_rel: 0.0,
+            principal_px: 0.0,
         };
         let errors = InsErrors {
             gyro_arw_rad_sqrt_s: 1e-5,
@@ -2817,6 +2868,7 @@ mod tests {
             map_tau_s: 10.0,
             map_att_sigma_rad: 0.0,
             focal_walk_rel_sqrt_s: 0.0,
+            principal_walk_px_sqrt_s: 0.0,
         };
         // Within +-300 m of the nadir point: +-38 px of a 640 x 480 image.
         let points = [(-250.0, -200.0), (240.0, -180.0), (0.0, 260.0), (-120.0, 90.0), (200.0, 150.0)]

@@ -292,6 +292,7 @@ mod tests {
             accel_bias_m_s2: 0.02,
             time_offset_s: 0.0,
             focal_rel: 0.0,
+            principal_px: 0.0,
         };
         let errors = InsErrors {
             gyro_arw_rad_sqrt_s: 0.15f64.to_radians() / 60.0,
@@ -303,6 +304,7 @@ mod tests {
             map_tau_s: 10.0,
             map_att_sigma_rad: 0.0,
             focal_walk_rel_sqrt_s: 0.0,
+            principal_walk_px_sqrt_s: 0.0,
         };
         let mut truth = InsFilter::new(state(true_velocity), &init, errors);
         let mut filter = InsFilter::new(state(true_velocity + north * 6.0), &init, errors);

@@ -41,6 +41,38 @@ fn evaluate_flight(flight: &Path, poses: &Path, json: &Path) -> serde_json::Valu
     serde_json::from_str(&std::fs::read_to_string(json).unwrap()).unwrap()
 }
 
+/// `--inertial-principal-point`: the tight filter carries the principal
+/// point. The synthetic camera's is exact, and the balloon yaws 6 deg/s about
+/// its boresight: over its 3 s the filter learns it a little (2.1 px from
+/// its 3 px prior), around zero, and navigates as well. (The filter's own
+/// convergence is `trn-navigator`'s unit test on a 60 s turn.)
+#[test]
+fn the_principal_point_carried_by_the_filter_stays_at_an_exact_camera() {
+    let s = nav_fixture();
+    let poses = s.root().join("poses-pp.csv");
+    let o = navigate(&s, &poses, &["--inertial-principal-point"]);
+    assert!(o.status.success(), "navigate failed: {}", stderr(&o));
+    let nav_report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let cal = &nav_report["calibration"];
+    let est = [cal["principal_du_px"].as_f64().unwrap(), cal["principal_dv_px"].as_f64().unwrap()];
+    let sigma: Vec<f64> =
+        cal["principal_sigma_px"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
+    println!("principal point {est:?} px +- {sigma:?}");
+    assert!(sigma.iter().all(|&s| s > 0.0 && s < 2.5), "{cal}");
+    assert!(est.iter().zip(&sigma).all(|(e, s)| e.abs() < 3.0 * s), "{cal}");
+    let run = &evaluate(&s, &poses)["runs"][0];
+    let mean = run["fix_errors"]["pos_m"]["mean"].as_f64().unwrap();
+    assert!(run["status"]["share_fix"].as_f64().unwrap() >= 0.9 && mean < 10.0, "mean error {mean} m");
+    // Both ways of estimating it at once is a usage error that names them.
+    let o = navigate(&s, &poses, &["--inertial-principal-point", "--estimate-principal-point"]);
+    assert!(!o.status.success());
+    let err = stderr(&o);
+    assert!(
+        err.contains("--inertial-principal-point") && err.contains("--estimate-principal-point"),
+        "{err}"
+    );
+}
+
 #[test]
 fn navigates_a_simulated_flight_to_metres() {
     let s = nav_fixture();
@@ -672,10 +704,7 @@ fn frames_seen_through_a_hole_in_the_cloud_still_update_the_tight_filter() {
     let flight = dir.join("flight");
     copy_flight(&s.flight, &flight);
     // From 1 s on, each image is grey but for a centred box of 0.3 of its
-    // sides: too narrow a spread for a fix (its inliers are at the spread
-    // test's edge: with the principal point in the filter, the last frame's
-    // 23 pass it), a few matches for the filter. (A box of 0.25 leaves too
-    // few for either: the filter drifts to 18 m.)
+    // sides: too narrow a spread for a fix, a few matches for the filter.
     let frames = std::fs::read_to_string(flight.join("frames.csv")).unwrap();
     let mut hole = 0;
     for line in frames.lines().skip(1) {
@@ -714,7 +743,7 @@ fn frames_seen_through_a_hole_in_the_cloud_still_update_the_tight_filter() {
     };
     let (fixes, gated, worst) = run_with("gated.csv", &[]);
     let total = frames.lines().count() as u64 - 1;
-    assert!(fixes <= total - hole + 1, "{fixes} fixes: the box gives at most one");
+    assert!(fixes <= total - hole, "{fixes} fixes: the box gives none");
     assert!(gated * 2 >= hole, "{gated} of {hole} frames through the hole updated the filter");
     assert!(worst < 10.0, "worst error {worst:.1} m");
     let (_, none, _) = run_with("plain.csv", &["--no-prior-gated-update"]);

@@ -2912,6 +2912,44 @@ mod tests {
     }
 
     #[test]
+    fn a_frame_without_a_fix_updates_the_principal_point_the_filter_carries() {
+        // The filter at the true pose, known to 10 urad and 0.5 m, and the
+        // principal point a state known to 3 px; the true camera's is 2 px
+        // right and 1 px up. Through the frame's sensitivity the gated
+        // matches measure it; without it they are 2.2 px from a prediction
+        // known to a tenth of a pixel, and every gate refuses them.
+        let (camera, mut f, _, truth, points) = gated_scene();
+        f.state.position = truth.position;
+        for i in 0..6 {
+            f.covariance[(i, i)] = if i < 3 { 1e-10 } else { 0.25 };
+        }
+        for i in ins::PRINCIPAL..ins::PRINCIPAL + 2 {
+            f.covariance[(i, i)] = 9.0;
+        }
+        assert!(f.estimates_principal_point());
+        let mut true_camera = camera;
+        (true_camera.cx, true_camera.cy) = (camera.cx + 2.0, camera.cy - 1.0);
+        let found = seen(&true_camera, &truth, &points);
+        let px: Vec<Pixel> = found.iter().map(|m| m.pixel).collect();
+        let fc = frame_calibration(&camera, &px, &points, &truth, 0.1, 0.0, None).expect("five points");
+        let sensitivity = IntrinsicsSensitivity::of_frame(&fc.pose_sensitivity);
+        let q = UnitQuaternion::identity();
+        let mut without = f.clone();
+        assert_eq!(prior_gated_update(&camera, &q, &mut without, &found, &IntrinsicsSensitivity::NONE), 0);
+        assert_eq!(prior_gated_update(&camera, &q, &mut f, &found, &sensitivity), 5);
+        let (est, cov) = f.take_principal_error();
+        println!(
+            "principal point {:+.3} {:+.3} px +- {:.3} {:.3}",
+            est.x,
+            est.y,
+            cov[(0, 0)].sqrt(),
+            cov[(1, 1)].sqrt()
+        );
+        assert!((est - nalgebra::Vector2::new(2.0, -1.0)).norm() < 0.2, "{est}");
+        assert!(cov[(0, 0)].sqrt() < 0.5 && cov[(1, 1)].sqrt() < 0.5, "{cov}");
+    }
+
+    #[test]
     fn a_few_matches_update_the_tight_filter_and_a_wrong_one_is_dropped() {
         let (camera, mut f, frame, truth, points) = gated_scene();
         let east = |f: &InsFilter| frame.to_enu(&f.state.position).0.x;

@@ -94,7 +94,7 @@ pub const FRAME_GATE_CHI2: [f64; 4] = [10.83, 13.82, 16.27, 18.47];
 /// The intrinsics another filter carries (see
 /// [`CalibrationFilter::pose_covariance_but`]).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct Carried {
+pub struct CarriedIntrinsics {
     pub focal: bool,
     pub principal_point: bool,
 }
@@ -211,13 +211,17 @@ impl CalibrationFilter {
     /// parameter: a nadir view turns a principal point error into a tilt,
     /// and the tilt into a horizontal shift).
     pub fn pose_covariance(&self, frame: &FrameCalibration) -> nalgebra::Matrix6<f64> {
-        self.pose_covariance_but(frame, Carried::default())
+        self.pose_covariance_but(frame, CarriedIntrinsics::default())
     }
 
     /// [`Self::pose_covariance`] without the shares of the intrinsics that
     /// another filter carries (the inertial one: [`Self::focal_evidence`],
     /// [`Self::shift_principal`]): what the others add.
-    pub fn pose_covariance_but(&self, frame: &FrameCalibration, carried: Carried) -> nalgebra::Matrix6<f64> {
+    pub fn pose_covariance_but(
+        &self,
+        frame: &FrameCalibration,
+        carried: CarriedIntrinsics,
+    ) -> nalgebra::Matrix6<f64> {
         // A state change dx is the frame's relative correction T dx.
         let s = frame.pose_sensitivity * self.to_state();
         let mut p = self.p;
@@ -464,9 +468,9 @@ mod tests {
         let (pp_var, focal_var) = (params().principal_sigma_px.powi(2), params().focal_sigma_rel.powi(2));
         let all = f.pose_covariance(&fr);
         assert!((all - share(0, focal_var) - share(1, pp_var) - share(2, pp_var)).norm() < 1e-15);
-        let but_pp = f.pose_covariance_but(&fr, Carried { focal: false, principal_point: true });
+        let but_pp = f.pose_covariance_but(&fr, CarriedIntrinsics { focal: false, principal_point: true });
         assert!((all - but_pp - share(1, pp_var) - share(2, pp_var)).norm() < 1e-15);
-        let but_both = f.pose_covariance_but(&fr, Carried { focal: true, principal_point: true });
+        let but_both = f.pose_covariance_but(&fr, CarriedIntrinsics { focal: true, principal_point: true });
         assert!(but_both.norm() < 1e-15, "k1 is trusted (prior 0): nothing is left");
 
         let mut g = f.clone();

@@ -822,13 +822,6 @@ impl IntrinsicsSensitivity {
         0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
     ));
 
-    /// The focal length's column alone.
-    pub fn focal(column: Vector6<f64>) -> Self {
-        let mut s = Self::NONE;
-        s.0.set_column(0, &column);
-        s
-    }
-
     /// From a frame's `pose_sensitivity` (columns focal, u, v, k1).
     pub fn of_frame(pose_sensitivity: &SMatrix<f64, 6, 4>) -> Self {
         Self(pose_sensitivity.fixed_columns::<3>(0).into_owned())
@@ -1154,6 +1147,28 @@ mod tests {
         assert!(err < 10.0, "{err} m");
     }
 
+    /// Conditions `f` on a pose `seen` with covariance `r`: the Kalman
+    /// posterior of the apparent pose, as the tight navigator's refinement
+    /// with the prediction as its prior, through `sensitivity`.
+    fn condition_on_seen(
+        f: &mut InsFilter,
+        q_imu_cam: &UnitQuaternion<f64>,
+        seen: &CameraPose,
+        r: &Matrix6<f64>,
+        sensitivity: &IntrinsicsSensitivity,
+    ) {
+        let (pred, m) = f.apparent_pose_with(q_imu_cam, sensitivity);
+        let s_inv = (m + r).try_inverse().unwrap();
+        let posterior = perturb(&pred, &(m * s_inv * pose_difference(seen, &pred)));
+        let post_cov = m - m * s_inv * m;
+        assert!(f.condition_on_pose_with(
+            q_imu_cam,
+            &posterior,
+            &((post_cov + post_cov.transpose()) * 0.5),
+            sensitivity
+        ));
+    }
+
     #[test]
     fn the_focal_length_is_learnt_where_the_boresight_turns_and_a_nadir_view_needs_relief() {
         // Images solved with a focal length 0.3% short see the terrain 0.3%
@@ -1186,24 +1201,14 @@ mod tests {
                 let truth = turn.at(t);
                 let cam = CameraPose::new(Ecef(truth.p), truth.q * q_imu_cam);
                 let b = cam.q_ecef_cam * Vector3::z();
-                let sensitivity =
-                    IntrinsicsSensitivity::focal(Vector6::new(0.0, 0.0, 0.0, -b.x, -b.y, -b.z) * range);
+                let mut s = SMatrix::<f64, 6, 3>::zeros();
+                s.set_column(0, &(Vector6::new(0.0, 0.0, 0.0, -b.x, -b.y, -b.z) * range));
+                let sensitivity = IntrinsicsSensitivity(s);
                 let mut d = Vector6::zeros();
                 d.fixed_rows_mut::<3>(0).copy_from(&draw(1e-4));
                 d.fixed_rows_mut::<3>(3).copy_from(&(draw(5.0) + b * (range * focal_true)));
                 let seen = perturb(&cam, &d);
-                // The Kalman posterior of the apparent pose, as the tight
-                // navigator's refinement with the prediction as its prior.
-                let (pred, m) = f.apparent_pose_with(&q_imu_cam, &sensitivity);
-                let s_inv = (m + r).try_inverse().unwrap();
-                let posterior = perturb(&pred, &(m * s_inv * pose_difference(&seen, &pred)));
-                let post_cov = m - m * s_inv * m;
-                assert!(f.condition_on_pose_with(
-                    &q_imu_cam,
-                    &posterior,
-                    &((post_cov + post_cov.transpose()) * 0.5),
-                    &sensitivity
-                ));
+                condition_on_seen(&mut f, &q_imu_cam, &seen, &r, &sensitivity);
             }
             f
         };
@@ -1242,7 +1247,7 @@ mod tests {
         // A principal point off by `dc` pixels makes every frame solved with
         // the nominal camera look tilted by `(dv, -du) / f` about the
         // camera's own x and y axes: apparent = true - S dc with
-        // `S = [R_ecef_cam [0, -1/f; 1/f, 0; 0, 0] (negated); 0]`. On the
+        // `S = [R_ecef_cam [0, -1/f; 1/f, 0; 0, 0]; 0]`. On the
         // constant turn a nadir camera turns about its boresight, 344
         // degrees in 60 s: the tilt turns with it in ECEF, which an attitude
         // error (carried by the gyro) does not. The attitude is known to 2
@@ -1276,17 +1281,7 @@ mod tests {
                 // apparent - true = -S dc
                 assert!((tilt + s.fixed_view::<3, 2>(0, 1) * dc_true).norm() < 1e-15);
                 let seen = perturb(&cam, &d);
-                let (pred, m) = f.apparent_pose_with(&UnitQuaternion::identity(), &sensitivity);
-                let s_inv = (m + r).try_inverse().unwrap();
-                let posterior = perturb(&pred, &(m * s_inv * pose_difference(&seen, &pred)));
-                let post_cov = m - m * s_inv * m;
-                let post_cov = (post_cov + post_cov.transpose()) * 0.5;
-                assert!(f.condition_on_pose_with(
-                    &UnitQuaternion::identity(),
-                    &posterior,
-                    &post_cov,
-                    &sensitivity
-                ));
+                condition_on_seen(&mut f, &UnitQuaternion::identity(), &seen, &r, &sensitivity);
                 if k == 2 {
                     sigma_after_2 = f.covariance[(PRINCIPAL, PRINCIPAL)].sqrt();
                 }

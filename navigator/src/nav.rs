@@ -19,8 +19,7 @@ use trn_vision::pnp::{
 use trn_vision::ransac::{ransac_p3p, RansacParams};
 
 use crate::attitude::{AttitudeFilter, GyroErrors};
-use crate::calibration::Carried as CarriedIntrinsics;
-use crate::calibration::{CalibrationFilter, CalibrationParams};
+use crate::calibration::{CalibrationFilter, CalibrationParams, CarriedIntrinsics};
 use crate::image::{GreyImage, Pyramid, UndistortLut};
 use crate::ins::{InsErrors, InsFilter, InsInit, InsState, IntrinsicsSensitivity, FOCAL};
 use crate::predict::{predict, Predicted};
@@ -924,6 +923,17 @@ impl<'a> Navigator<'a> {
         );
     }
 
+    /// Moves the camera by whatever intrinsics the inertial filter carries
+    /// and has learnt since the last take.
+    fn take_intrinsics(&mut self, f: &mut InsFilter) {
+        if f.estimates_focal() {
+            self.take_focal(f, None);
+        }
+        if f.estimates_principal_point() {
+            self.take_principal_point(f);
+        }
+    }
+
     /// The intrinsics the inertial filter in `filter` carries.
     fn carried_intrinsics(filter: &Carried) -> CarriedIntrinsics {
         match filter {
@@ -950,12 +960,7 @@ impl<'a> Navigator<'a> {
         let n = prior_gated_update(&self.camera, &self.q_imu_cam, f, found, &self.last_sensitivity);
         if n > 0 {
             debug!("t {t:.3}: prior-gated update with {n} matches");
-            if f.estimates_focal() {
-                self.take_focal(f, None);
-            }
-            if f.estimates_principal_point() {
-                self.take_principal_point(f);
-            }
+            self.take_intrinsics(f);
         }
         n
     }
@@ -1168,12 +1173,7 @@ impl<'a> Navigator<'a> {
                 if let Some(r) = self.refine_inliers(sol, Some(PosePrior { pose, covariance })) {
                     f.condition_on_pose_with(&q, &r.pose, &r.covariance, sensitivity);
                 }
-                if f.estimates_focal() {
-                    self.take_focal(&mut f, None);
-                }
-                if f.estimates_principal_point() {
-                    self.take_principal_point(&mut f);
-                }
+                self.take_intrinsics(&mut f);
             }
         }
         // The fix's inliers, each one more fix in a row.

@@ -292,7 +292,7 @@ struct NavigateArgs {
     #[arg(long, default_value_t = 450.0)]
     max_height_jump: f64,
     /// Landmarks correlated per image.
-    #[arg(long, default_value_t = 300)]
+    #[arg(long, default_value_t = 450)]
     max_landmarks: usize,
     /// Correlation work per lost frame (G multiply-adds, a template's warp
     /// counting 0.01, each search position 400 more) when the guess's uncertainty is wider than one search

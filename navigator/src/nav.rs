@@ -195,7 +195,7 @@ impl Default for NavParams {
             min_inlier_cells: 4,
             min_inlier_spread: 0.08,
             max_height_jump_m: 450.0,
-            max_landmarks: 300,
+            max_landmarks: 450,
             acquisition_budget_g: 30.0,
             grid: (8, 6),
             ransac_threshold_px: 2.0,

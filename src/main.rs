@@ -674,7 +674,9 @@ fn run_simulate(a: SimulateArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
+/// The navigator's settings from `trn navigate`'s options (with none given:
+/// `NavParams::default()`, which a test holds them to).
+fn nav_params(a: &NavigateArgs) -> trn_navigator::NavParams {
     let mut params = trn_navigator::NavParams { use_gyro: !a.no_gyro, ..Default::default() };
     params.alpha_max_deg = a.alpha_max;
     params.min_inliers = a.min_inliers;
@@ -699,7 +701,7 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
     params.track_update = !a.no_track_update;
     params.inertial_focal = a.inertial_focal;
     params.inertial_principal_point = a.inertial_principal_point;
-    params.sun = a.sun;
+    params.sun = a.sun.clone();
     params.shading_weight = a.shading_weight;
     params.gyro_arw_deg_sqrt_s = a.gyro_arw / 60.0;
     params.gyro_bias_deg_s = a.gyro_bias / 3600.0;
@@ -712,9 +714,13 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
         max_frame_sigma_rel: a.calibration_frame_sigma / 100.0,
         ..Default::default()
     });
+    params
+}
+
+fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
     let opts = trn_navigator::RunOptions {
         rate_hz: a.rate,
-        params,
+        params: nav_params(&a),
         matches_dir: a.matches_dir.clone(),
         imu_rate: a.imu_rate,
     };
@@ -968,4 +974,28 @@ fn run_coverage(a: CoverageArgs) -> anyhow::Result<()> {
     )?;
     println!("{}", serde_json::to_string_pretty(&report)?);
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `trn navigate`'s option defaults are the navigator's own: one value
+    /// each, whichever side a change moves.
+    #[test]
+    fn navigate_defaults_are_the_navigators() {
+        let cli =
+            Cli::try_parse_from(["trn", "navigate", "--db", "l.gpkg", "--flight", "f", "--out", "p.csv"])
+                .expect("minimal navigate arguments parse");
+        let Command::Navigate(a) = cli.command else { panic!("not navigate") };
+        let from_cli = format!("{:?}", nav_params(&a));
+        let library = format!("{:?}", trn_navigator::NavParams::default());
+        let differing: Vec<_> = from_cli
+            .split(", ")
+            .zip(library.split(", "))
+            .filter(|(c, l)| c != l)
+            .map(|(c, l)| format!("cli {c} / library {l}"))
+            .collect();
+        assert!(differing.is_empty(), "defaults differ: {differing:#?}");
+    }
 }

@@ -701,7 +701,7 @@ fn nav_params(a: &NavigateArgs) -> trn_navigator::NavParams {
     params.track_update = !a.no_track_update;
     params.inertial_focal = a.inertial_focal;
     params.inertial_principal_point = a.inertial_principal_point;
-    params.sun = a.sun.clone();
+    params.sun = a.sun;
     params.shading_weight = a.shading_weight;
     params.gyro_arw_deg_sqrt_s = a.gyro_arw / 60.0;
     params.gyro_bias_deg_s = a.gyro_bias / 3600.0;

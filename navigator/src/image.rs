@@ -90,9 +90,10 @@ impl UndistortLut {
         Self { levels: out }
     }
 
+    /// The rays of level `k`'s pixels `x..x + len` on row `y`.
     #[inline]
-    pub fn at(&self, k: usize, x: usize, y: usize) -> [f32; 2] {
+    pub fn row(&self, k: usize, y: usize, x: usize, len: usize) -> &[[f32; 2]] {
         let (w, _, v) = &self.levels[k];
-        v[y * w + x]
+        &v[y * w + x..][..len]
     }
 }

@@ -13,6 +13,7 @@ use trn_camera::{CameraModel, CameraPose, Pixel};
 use trn_geodesy::{Ecef, Enu};
 use trn_landmark::Template;
 use trn_vision::ncc;
+use trn_vision::warp::{bilinear, homography_row, homography_sample, GreyTemplate};
 
 use crate::image::{from_level, to_level, UndistortLut};
 
@@ -292,35 +293,9 @@ pub fn predict(
     // the part in the image.
     let (w, h) = (camera.width as f64, camera.height as f64);
     let centre_outside = !(center_px.u >= 0.0 && center_px.v >= 0.0 && center_px.u < w && center_px.v < h);
-    // The ray (normalized image point) of a patch pixel: the undistortion
-    // table's inside the image, the camera model's beyond it when the centre
-    // is outside; `None` where the patch keeps no pixel.
-    let ray = |x: isize, y: isize| -> Option<[f32; 2]> {
-        if x >= 0 && y >= 0 && x < *lw as isize && y < *lh as isize {
-            Some(lut.at(level, x as usize, y as usize))
-        } else if centre_outside {
-            let q =
-                camera.pixel_to_normalized(crate::image::from_level(Pixel::new(x as f64, y as f64), level));
-            Some([q.x as f32, q.y as f32])
-        } else {
-            None
-        }
-    };
     let mut data = vec![0f32; side * side];
     let mut mask = vec![false; side * side];
-    let tw_i = t.width_px as usize;
-    // Patch pixel `k` shows the template at pixel (column, row) `(tc, tr)`.
-    let mut sample = |k: usize, tc: f64, tr: f64| {
-        if !(tc >= 0.0 && tr >= 0.0 && tc <= tw - 1.0 && tr <= th - 1.0) {
-            return;
-        }
-        let (ic, ir) = ((tc as usize).min(tw_i - 2), (tr as usize).min(t.height_px as usize - 2));
-        let (fc, fr) = ((tc - ic as f64) as f32, (tr - ir as f64) as f32);
-        let px = |cc: usize, rr: usize| t.pixels[rr * tw_i + cc] as f32;
-        data[k] = (px(ic, ir) * (1.0 - fc) + px(ic + 1, ir) * fc) * (1.0 - fr)
-            + (px(ic, ir + 1) * (1.0 - fc) + px(ic + 1, ir + 1) * fc) * fr;
-        mask[k] = true;
-    };
+    let grey = GreyTemplate { width: t.width_px as usize, height: t.height_px as usize, pixels: &t.pixels };
     match &relief {
         // Through the relief: the template's terrain mesh (see `ReliefMesh`).
         Some(mesh) => {
@@ -331,17 +306,43 @@ pub fn predict(
             let at = mesh.rasterize(t, camera, level, side, (x0, y0), keep);
             for (k, at) in at.into_iter().enumerate() {
                 if let Some((tc, tr)) = at {
-                    sample(k, tc, tr);
+                    if let Some(v) = bilinear(&grey, tc, tr) {
+                        (data[k], mask[k]) = (v, true);
+                    }
                 }
             }
         }
-        // Through the plane's homography.
+        // Through the plane's homography, a row of patch pixels at a time:
+        // inside the image each pixel's ray is the undistortion table's
+        // (the row's part in the image only, unless the centre is outside),
+        // beyond it the camera model's.
         None => {
-            for k in 0..side * side {
-                let Some(n) = ray(x0 + (k % side) as isize, y0 + (k / side) as isize) else { continue };
-                let m = a_inv * Vector3::new(n[0] as f64, n[1] as f64, 1.0);
-                if m.z > 0.0 {
-                    sample(k, m.x / m.z, m.y / m.z);
+            let [r0, r1, r2] = [a_inv.row(0), a_inv.row(1), a_inv.row(2)];
+            let (lw, lh) = (*lw as isize, *lh as isize);
+            let homography = [r0[0], r0[1], r0[2], r1[0], r1[1], r1[2], r2[0], r2[1], r2[2]];
+            for j in 0..side {
+                let y = y0 + j as isize;
+                let row_in = y >= 0 && y < lh;
+                // The patch columns whose pixels lie in the image on this row.
+                let (i_lo, i_hi) = if row_in {
+                    ((-x0).clamp(0, side as isize) as usize, (lw - x0).clamp(0, side as isize) as usize)
+                } else {
+                    (0, 0)
+                };
+                if centre_outside {
+                    for i in (0..i_lo).chain(i_hi.max(i_lo)..side) {
+                        let p = from_level(Pixel::new((x0 + i as isize) as f64, y as f64), level);
+                        let q = camera.pixel_to_normalized(p);
+                        let k = j * side + i;
+                        if let Some(v) = homography_sample(&grey, &homography, [q.x as f32, q.y as f32]) {
+                            (data[k], mask[k]) = (v, true);
+                        }
+                    }
+                }
+                if i_hi > i_lo {
+                    let rays = lut.row(level, y as usize, (x0 + i_lo as isize) as usize, i_hi - i_lo);
+                    let row = j * side + i_lo;
+                    homography_row(&grey, &homography, rays, &mut data[row..], &mut mask[row..]);
                 }
             }
         }

@@ -9,6 +9,8 @@
 //!   length and principal point with the pose left free (self-calibration).
 //! - [`ncc`]: normalized cross-correlation of a template over a search
 //!   window with sub-pixel peaks and an ambiguity measure.
+//! - [`warp`]: a template resampled through a plane's homography (the inner
+//!   loop of predicting a landmark in the image).
 //!
 //! ```
 //! use nalgebra::{Rotation3, Vector3};
@@ -28,3 +30,4 @@ pub mod ncc;
 pub mod p3p;
 pub mod pnp;
 pub mod ransac;
+pub mod warp;

@@ -29,6 +29,9 @@
 //!   (chosen at run time) and for the baseline target. At these sizes
 //!   (32x32 template, 41x41 positions = 1.7M multiply-adds) it is faster than
 //!   OpenCV's `matchTemplate` (which uses a DFT there); see `ncc_timing`.
+//!   Each window row feeds only the columns where the template rows it
+//!   meets have valid pixels (a rotated template's corners are skipped;
+//!   their coefficients are 0, so every sum is what it was).
 //! - Denominator: the image sums under the valid pixels, sum(m*I) and
 //!   sum(m*I^2), in f64. Without a mask: separable running sums (the
 //!   summed-area-table idea without the table): vertical over the template
@@ -274,6 +277,11 @@ struct Prepared {
     n: f64,
     /// Valid pixels as rectangles (x0, x1, y0, y1), half-open, crop coordinates.
     rects: Vec<(usize, usize, usize, usize)>,
+    /// Per window row `k` of a tile (`0..h + TY - 1`), the crop columns
+    /// `[lo, hi)` holding the valid pixels of the template rows it feeds
+    /// (`k - TY + 1..=k`): the correlation skips the taps outside, whose
+    /// coefficients are 0 (a warped template's corners).
+    taps: Vec<(usize, usize)>,
 }
 
 impl Prepared {
@@ -362,6 +370,20 @@ impl Prepared {
                 std::mem::swap(&mut open, &mut next);
             }
         }
+        // Each crop row's span of valid pixels (empty: (w, 0)), then their
+        // unions over the TY rows each window row feeds.
+        let spans: Vec<(usize, usize)> = (0..h)
+            .map(|j| {
+                let lo = (0..w).find(|&i| valid(i, j));
+                lo.map_or((w, 0), |lo| (lo, (0..w).rfind(|&i| valid(i, j)).unwrap_or(lo) + 1))
+            })
+            .collect();
+        let taps: Vec<(usize, usize)> = (0..h + TY - 1)
+            .map(|k| {
+                (k.saturating_sub(TY - 1)..(k + 1).min(h))
+                    .fold((w, 0), |(lo, hi), j| (lo.min(spans[j].0), hi.max(spans[j].1)))
+            })
+            .collect();
         Some(Prepared {
             ox: x0,
             oy: y0,
@@ -372,6 +394,7 @@ impl Prepared {
             std: (ss / n as f64).sqrt(),
             n: n as f64,
             rects,
+            taps,
         })
     }
 
@@ -445,10 +468,10 @@ impl Prepared {
             // SAFETY: FMA is only true in `surface_avx2`, called after detection.
             #[cfg(target_arch = "x86_64")]
             unsafe {
-                correlate_avx2(win, wp, &self.coef, self.w, self.h, num, nxp, nyp)
+                correlate_avx2(win, wp, &self.coef, &self.taps, self.w, self.h, num, nxp, nyp)
             };
         } else {
-            correlate_tiles::<false>(win, wp, &self.coef, self.w, self.h, num, nxp, nyp);
+            correlate_tiles::<false>(win, wp, &self.coef, &self.taps, self.w, self.h, num, nxp, nyp);
         }
 
         // Image sums under the valid pixels, sum(m*I) and sum(m*I^2), in f64.
@@ -598,25 +621,29 @@ fn correlate_avx2(
     win: &[f32],
     wp: usize,
     coef: &[f32],
+    taps: &[(usize, usize)],
     tw: usize,
     th: usize,
     num: &mut [f32],
     nxp: usize,
     nyp: usize,
 ) {
-    correlate_tiles::<true>(win, wp, coef, tw, th, num, nxp, nyp);
+    correlate_tiles::<true>(win, wp, coef, taps, tw, th, num, nxp, nyp);
 }
 
 /// num[y * nxp + x] = sum_{j,i} coef[(j + TY-1) * tw + i] * win[(y + j) * wp + x + i].
 /// Register-tiled: TY output rows x TX positions of accumulators;
 /// window row y+k feeds output row y+r through template row k-r (padded rows
-/// of `coef` are zero), so each window load serves TY rows.
+/// of `coef` are zero), so each window load serves TY rows. Window row `k`
+/// feeds only its columns `taps[k]` (the others' coefficients are 0: skipping
+/// them leaves every sum as it was, term for term).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 fn correlate_tiles<const FMA: bool>(
     win: &[f32],
     wp: usize,
     coef: &[f32],
+    taps: &[(usize, usize)],
     tw: usize,
     th: usize,
     num: &mut [f32],
@@ -624,15 +651,16 @@ fn correlate_tiles<const FMA: bool>(
     nyp: usize,
 ) {
     assert!(nxp % TX + nyp % TY == 0 && wp >= nxp + tw - 1);
+    assert!(taps.len() == th + TY - 1 && taps.iter().all(|&(lo, hi)| lo >= hi || hi <= tw));
     assert!(win.len() >= (nyp + th - 1) * wp && coef.len() == (th + 2 * (TY - 1)) * tw);
     assert!(num.len() >= nxp * nyp);
     for y in (0..nyp).step_by(TY) {
         for x in (0..nxp).step_by(TX) {
             let mut acc = [[0f32; TX]; TY];
-            for k in 0..th + TY - 1 {
+            for (k, &(lo, hi)) in taps.iter().enumerate() {
                 let row = &win[(y + k) * wp + x..][..tw + TX - 1];
                 let trows: [&[f32]; TY] = std::array::from_fn(|r| &coef[(k + TY - 1 - r) * tw..][..tw]);
-                for i in 0..tw {
+                for i in lo..hi {
                     let v: &[f32; TX] = row[i..i + TX].try_into().unwrap();
                     for r in 0..TY {
                         let c = trows[r][i];

@@ -305,15 +305,18 @@ impl Prepared {
             return None;
         }
         let (w, h) = (x1 - x0, y1 - y0);
-        let valid = |i: usize, j: usize| mask.is_none_or(|m| m[(y0 + j) * tw + x0 + i]);
+        // The crop's rows of data and of validity (all valid without a mask).
+        let data_row = |j: usize| &tpl.data[(y0 + j) * tw + x0..][..w];
+        let all_valid = vec![true; w];
+        let mask_row = |j: usize| mask.map_or(&all_valid[..], |m| &m[(y0 + j) * tw + x0..][..w]);
+        // Sums in row-major order, one pixel at a time.
         let (mut n, mut sum) = (0usize, 0f64);
         for j in 0..h {
-            let row = &tpl.data[(y0 + j) * tw + x0..][..w];
             match mask {
-                None => sum += row.iter().map(|&v| v as f64).sum::<f64>(),
+                None => sum += data_row(j).iter().map(|&v| v as f64).sum::<f64>(),
                 Some(_) => {
-                    for (i, &v) in row.iter().enumerate() {
-                        if valid(i, j) {
+                    for (&v, &m) in data_row(j).iter().zip(mask_row(j)) {
+                        if m {
                             sum += v as f64;
                             n += 1;
                         }
@@ -329,9 +332,8 @@ impl Prepared {
         let mut coef = vec![0f32; (h + 2 * pad) * w];
         let mut ss = 0f64;
         for j in 0..h {
-            let row = &tpl.data[(y0 + j) * tw + x0..][..w];
-            for (i, (c, &v)) in coef[(j + pad) * w..][..w].iter_mut().zip(row).enumerate() {
-                if valid(i, j) {
+            for ((c, &v), &m) in coef[(j + pad) * w..][..w].iter_mut().zip(data_row(j)).zip(mask_row(j)) {
+                if m {
                     let d = v as f64 - mean;
                     *c = d as f32;
                     ss += d * d;
@@ -346,14 +348,15 @@ impl Prepared {
             let (mut open, mut next) = (Vec::new(), Vec::new()); // rects ending on the previous row
             for j in 0..h {
                 next.clear();
+                let row = mask_row(j);
                 let mut i = 0;
                 while i < w {
-                    if !valid(i, j) {
+                    if !row[i] {
                         i += 1;
                         continue;
                     }
                     let a = i;
-                    while i < w && valid(i, j) {
+                    while i < w && row[i] {
                         i += 1;
                     }
                     match open.iter().find(|&&k: &&usize| rects[k].0 == a && rects[k].1 == i) {
@@ -374,8 +377,11 @@ impl Prepared {
         // unions over the TY rows each window row feeds.
         let spans: Vec<(usize, usize)> = (0..h)
             .map(|j| {
-                let lo = (0..w).find(|&i| valid(i, j));
-                lo.map_or((w, 0), |lo| (lo, (0..w).rfind(|&i| valid(i, j)).unwrap_or(lo) + 1))
+                let row = mask_row(j);
+                match (row.iter().position(|&v| v), row.iter().rposition(|&v| v)) {
+                    (Some(lo), Some(hi)) => (lo, hi + 1),
+                    _ => (w, 0),
+                }
             })
             .collect();
         let taps: Vec<(usize, usize)> = (0..h + TY - 1)

@@ -294,6 +294,12 @@ struct NavigateArgs {
     /// Landmarks correlated per image.
     #[arg(long, default_value_t = 450)]
     max_landmarks: usize,
+    /// Threads a frame's landmarks are predicted and correlated on. The
+    /// poses are the same for any count; 1 (the default) keeps the navigator
+    /// on one core, beside the rest of a flight's software, as its
+    /// benchmarks measure it.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=1024))]
+    threads: u32,
     /// Correlation work per lost frame (G multiply-adds, a template's warp
     /// counting 0.01, each search position 400 more) when the guess's uncertainty is wider than one search
     /// reaches (a low camera kilometres off): tiles around the guess are
@@ -683,6 +689,7 @@ fn nav_params(a: &NavigateArgs) -> trn_navigator::NavParams {
     params.min_inlier_share = a.min_inlier_share;
     params.max_height_jump_m = a.max_height_jump;
     params.max_landmarks = a.max_landmarks;
+    params.threads = a.threads as usize;
     params.acquisition_budget_g = a.acquisition_budget;
     params.init_sigma_m = a.init_sigma_m;
     params.init_sigma_deg = a.init_sigma_deg;

@@ -749,3 +749,47 @@ fn frames_seen_through_a_hole_in_the_cloud_still_update_the_tight_filter() {
     let (_, none, _) = run_with("plain.csv", &["--no-prior-gated-update"]);
     assert_eq!(none, 0);
 }
+
+/// `--threads`: a frame's landmarks predicted and correlated on two threads
+/// give every frame's pose, status and inliers, every match (in order) and
+/// every covariance as on one, from a good guess and from one 1.5 km off
+/// (the acquisition's searches).
+#[test]
+fn threads_change_no_pose() {
+    let s = nav_fixture();
+    let (dir, flight) = with_init(&s, "threads-far", |init| {
+        let (lat, lon) = (init["lat"].as_f64().unwrap(), init["lon"].as_f64().unwrap());
+        init["lat"] = serde_json::json!(lat + 1060.0 / 111_000.0);
+        init["lon"] = serde_json::json!(lon + 1060.0 / (111_000.0 * lat.to_radians().cos()));
+    });
+    let far = NavFixture { dir: tempfile::tempdir().unwrap(), db: s.db.clone(), flight };
+    // poses.csv without its last column (ms), then matches.csv and covariance.csv.
+    let outputs = |poses: &Path| -> Vec<String> {
+        let read = |name: &str| std::fs::read_to_string(poses.with_file_name(name)).unwrap();
+        let mut lines: Vec<String> =
+            read("poses.csv").lines().map(|l| l.rsplit_once(',').unwrap().0.to_string()).collect();
+        lines.extend(read("matches.csv").lines().map(str::to_string));
+        lines.extend(read("covariance.csv").lines().map(str::to_string));
+        lines
+    };
+    for (k, (fixture, extra)) in
+        [(&s, &[][..]), (&far, &["--init-sigma-m", "1500"][..])].into_iter().enumerate()
+    {
+        let mut out = Vec::new();
+        for threads in ["1", "2"] {
+            let run_dir = dir.join(format!("run-{k}-{threads}"));
+            std::fs::create_dir_all(&run_dir).unwrap();
+            let poses = run_dir.join("poses.csv");
+            let mut args = extra.to_vec();
+            args.extend(["--threads", threads]);
+            let o = navigate(fixture, &poses, &args);
+            assert!(o.status.success(), "navigate --threads {threads} failed: {}", stderr(&o));
+            out.push(outputs(&poses));
+        }
+        assert!(out[0].len() > 100, "{:?}", out[0]);
+        assert_eq!(out[0], out[1], "one thread and two differ ({extra:?})");
+    }
+    // Zero threads is a usage error that names the option.
+    let o = navigate(&s, &dir.join("zero.csv"), &["--threads", "0"]);
+    assert!(!o.status.success() && stderr(&o).contains("--threads"), "{}", stderr(&o));
+}

@@ -181,6 +181,11 @@ pub struct NavParams {
     /// ([`crate::calibration`]), with these priors; `None`: trust
     /// `camera.json`.
     pub calibration: Option<CalibrationParams>,
+    /// Threads a frame's landmarks are predicted and correlated on (each
+    /// landmark's work is its own, so the poses are the same bits for any
+    /// count; 0: one per core). 1, the default, keeps the navigator on the
+    /// calling thread.
+    pub threads: usize,
 }
 
 impl Default for NavParams {
@@ -232,6 +237,7 @@ impl Default for NavParams {
             sun: None,
             shading_weight: 0.5,
             calibration: Some(CalibrationParams::default()),
+            threads: 1,
         }
     }
 }
@@ -387,6 +393,8 @@ pub struct Navigator<'a> {
     /// uncertainty was inflated ([`Self::doubt_unconfirmed_guess`]): the
     /// first fix restarts the pose, as an acquisition's does.
     guess_doubted: bool,
+    /// The threads of [`NavParams::threads`] (`None`: one, the caller's).
+    pool: Option<rayon::ThreadPool>,
     /// A fix has sized the map offset's prior ([`map_sigmas_for_gsd`]).
     map_sized: bool,
     /// The last accepted fix's pose sensitivity to the intrinsics the
@@ -675,6 +683,16 @@ impl<'a> Navigator<'a> {
         init: &TimedPose,
         params: NavParams,
     ) -> Result<Self, trn_view::SourceError> {
+        let pool = match params.threads {
+            1 => None,
+            n => Some(
+                rayon::ThreadPoolBuilder::new()
+                    .num_threads(n)
+                    .thread_name(|i| format!("trn-navigate-{i}"))
+                    .build()
+                    .map_err(|e| trn_view::SourceError(format!("cannot start {n} navigator threads: {e}")))?,
+            ),
+        };
         let level_infos = source.levels()?;
         let levels = DbLevel::of(&level_infos);
         if levels.is_empty() {
@@ -776,6 +794,7 @@ impl<'a> Navigator<'a> {
             ins,
             track: None,
             guess_doubted: false,
+            pool,
             map_sized: false,
             last_sensitivity: IntrinsicsSensitivity::NONE,
             landmark_runs: HashMap::new(),
@@ -1940,6 +1959,20 @@ impl<'a> Navigator<'a> {
         Ok(Solution { n_searched: searched, ..sol })
     }
 
+    /// `f` of each item, the `None`s left out, in the items' order: on the
+    /// navigator's threads when it has several ([`NavParams::threads`]).
+    fn filter_map_in_order<T: Sync, R: Send>(
+        &self,
+        items: &[T],
+        f: impl Fn(&T) -> Option<R> + Sync,
+    ) -> Vec<R> {
+        use rayon::prelude::*;
+        match &self.pool {
+            Some(pool) => pool.install(|| items.par_iter().filter_map(&f).collect()),
+            None => items.iter().filter_map(f).collect(),
+        }
+    }
+
     /// The templates the guess puts in view at pyramid level `level`, each
     /// searched for in the image within `search.radius` level pixels: the
     /// matches found, and how many templates were searched for.
@@ -1979,12 +2012,10 @@ impl<'a> Navigator<'a> {
         let view = ImageView::new(img.width, img.height, &img.data);
         // An acquisition correlates the centres of the larger templates only.
         let max_patch_px = if margin_px > 0.0 { ACQUISITION_MAX_PATCH_PX } else { MAX_PATCH_PX };
-        let predicted: Vec<Predicted> = chosen
-            .iter()
-            .filter_map(|t| {
-                predict(t, pose, &self.camera, &self.lut, level, max_patch_px, self.params.alpha_max_deg)
-            })
-            .collect();
+        let (camera, lut, alpha_max_deg) = (&self.camera, &self.lut, self.params.alpha_max_deg);
+        let predicted: Vec<Predicted> = self.filter_map_in_order(&chosen, |t| {
+            predict(t, pose, camera, lut, level, max_patch_px, alpha_max_deg)
+        });
         let predict_px: usize = predicted.iter().map(|p| p.patch.width * p.patch.height).sum();
         self.work.set(self.work.get() + predict_px as u64 * PREDICT_WORK_PER_PX);
         // An acquisition correlates its templates (spread over the image, the
@@ -1999,22 +2030,20 @@ impl<'a> Navigator<'a> {
             works.len()
         };
         self.work.set(self.work.get() + works[..searched].iter().sum::<u64>());
-        let matches: Vec<Match> = predicted[..searched]
-            .iter()
-            .filter_map(|p| {
-                let (u0, v0) = (p.patch_center.u, p.patch_center.v);
-                let m = ncc::match_template(&view, &p.patch, u0, v0, radius, &self.params.ncc).ok()?;
-                Some(Match {
-                    pixel: p.observed_center(Pixel::new(m.u, m.v)),
-                    point_ecef: p.center_ecef.0,
-                    landmark: p.template_id,
-                    predicted: p.center_px,
-                    // At full resolution; an edge's (infinite along it) capped.
-                    sigma_px: (m.sigma_px * scale).min(MAX_PEAK_SIGMA_PX),
-                    gsd_m: p.gsd_m,
-                })
+        let ncc_params = &self.params.ncc;
+        let matches: Vec<Match> = self.filter_map_in_order(&predicted[..searched], |p| {
+            let (u0, v0) = (p.patch_center.u, p.patch_center.v);
+            let m = ncc::match_template(&view, &p.patch, u0, v0, radius, ncc_params).ok()?;
+            Some(Match {
+                pixel: p.observed_center(Pixel::new(m.u, m.v)),
+                point_ecef: p.center_ecef.0,
+                landmark: p.template_id,
+                predicted: p.center_px,
+                // At full resolution; an edge's (infinite along it) capped.
+                sigma_px: (m.sigma_px * scale).min(MAX_PEAK_SIGMA_PX),
+                gsd_m: p.gsd_m,
             })
-            .collect();
+        });
         debug!(
             "level {level}: db levels around {db_level}, {} templates, {} predicted, {} searched, {} matches, radius {radius}",
             templates.len(),

@@ -690,7 +690,11 @@ impl<'a> Navigator<'a> {
                     .num_threads(n)
                     .thread_name(|i| format!("trn-navigate-{i}"))
                     .build()
-                    .map_err(|e| trn_view::SourceError(format!("--threads {n}: cannot start the navigator's threads: {e}")))?,
+                    .map_err(|e| {
+                        trn_view::SourceError(format!(
+                            "--threads {n}: cannot start the navigator's threads: {e}"
+                        ))
+                    })?,
             ),
         };
         let level_infos = source.levels()?;

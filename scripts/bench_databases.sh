@@ -9,7 +9,9 @@
 #    database: the median and the minimum over frames, and the share of frames
 #    with >= 60.
 # 2. trn navigate on each database (both flights of a pair at once, one per
-#    core): fix share, mean / p95 / worst 3D error of accepted fixes.
+#    core): fix share, mean / p95 / worst 3D error of accepted fixes, the
+#    mean NEES of the fixes against its 95% band, and the farthest fix from
+#    the truth in its own covariance's sigmas (`trn evaluate`'s consistency).
 #
 # Databases:
 #   default   the default build (target/realistic/db/WORLD.gpkg)
@@ -109,9 +111,13 @@ done < "$suite"
 navigate() {
   read -r name kind flight db extra <<< "$1"
   local o="$work/nav-$name-$kind"
+  # A folder per run: matches.csv and covariance.csv are written next to
+  # poses.csv, and `trn evaluate` reads them there (two runs at once must not
+  # share them).
+  mkdir -p "$o"
   # shellcheck disable=SC2086
-  "$trn" navigate --db "$db" --flight "$flight" --out "$o.csv" $extra > "$o.json" 2> "$o.log"
-  "$trn" evaluate --flight "$flight" --poses "$o.csv" --json "$o.eval.json" > /dev/null 2>&1
+  "$trn" navigate --db "$db" --flight "$flight" --out "$o/poses.csv" $extra > "$o.json" 2> "$o.log"
+  "$trn" evaluate --flight "$flight" --poses "$o/poses.csv" --json "$o.eval.json" > /dev/null 2>&1
 }
 export -f navigate; export trn work
 echo "== navigating $(wc -l < "$jobs") flight/database pairs" >&2
@@ -131,17 +137,21 @@ for r in rows:
     rep = json.load(open(path))
     n = [p["landmarks"] for p in rep["points"]]
     lines.append(f"| {name} | {kind} | {count(db)} | {statistics.median(n):.0f} | {min(n)} | {100 * sum(x >= 60 for x in n) / len(n):.0f}% |")
-lines += ["", "| scenario | database | trn fix | mean m | p95 m | worst m |", "|---|---|---:|---:|---:|---:|"]
+lines += ["", "| scenario | database | trn fix | mean m | p95 m | worst m | mean NEES | NEES band | farthest fix (sigma) |", "|---|---|---:|---:|---:|---:|---:|---|---:|"]
 for name in names:
     for kind in ("default", "mission", "sun"):
         ev = os.path.join(work, f"nav-{name}-{kind}.eval.json")
         if not os.path.exists(ev):
-            lines.append(f"| {name} | {kind} | failed | | | |")
+            lines.append(f"| {name} | {kind} | failed | | | | | | |")
             continue
         r = json.load(open(ev))["runs"][0]
         e = r["fix_errors"]["pos_m"]
         f = lambda k: "–" if e.get(k) is None else f"{e[k]:.1f}"
-        lines.append(f"| {name} | {kind} | {100 * r['status']['share_fix']:.0f}% | {f('mean')} | {f('p95')} | {f('max')} |")
+        c = r.get("consistency") or {}
+        nees = "–" if "mean_nees" not in c else f"{c['mean_nees']:.2f}"
+        band = "–" if "band" not in c else f"{c['band'][0]:.2f}–{c['band'][1]:.2f}"
+        far = "–" if "max_sigma_distance" not in c else f"{c['max_sigma_distance']:.1f}"
+        lines.append(f"| {name} | {kind} | {100 * r['status']['share_fix']:.0f}% | {f('mean')} | {f('p95')} | {f('max')} | {nees} | {band} | {far} |")
 open(out, "w").write("\n".join(lines) + "\n")
 print("\n".join(lines))
 PY

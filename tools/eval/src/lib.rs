@@ -357,13 +357,15 @@ impl fmt::Display for RunReport {
         if let Some(c) = &self.consistency {
             writeln!(
                 f,
-                "position covariance (NEES, n={}): mean {:.2} (consistent: {:.2}..{:.2}), {} within the 95% point, errors {:.1}x the reported sigma (median)",
+                "position covariance (NEES, n={}): mean {:.2} (consistent: {:.2}..{:.2}), {} within the 95% point, errors {:.1}x the reported sigma (median), the farthest fix {:.1} sigma from the truth (t {:.2} s)",
                 c.fixes,
                 c.mean_nees,
                 c.band[0],
                 c.band[1],
                 pct(c.share_within_95),
-                c.median_sigma_ratio
+                c.median_sigma_ratio,
+                c.max_sigma_distance,
+                c.max_sigma_distance_t
             )?;
         }
         Ok(())

@@ -307,7 +307,7 @@ impl Prepared {
         let (w, h) = (x1 - x0, y1 - y0);
         // The crop's rows of data and of validity (all valid without a mask).
         let data_row = |j: usize| &tpl.data[(y0 + j) * tw + x0..][..w];
-        let all_valid = vec![true; w];
+        let all_valid = if mask.is_none() { vec![true; w] } else { Vec::new() };
         let mask_row = |j: usize| mask.map_or(&all_valid[..], |m| &m[(y0 + j) * tw + x0..][..w]);
         // Sums in row-major order, one pixel at a time.
         let (mut n, mut sum) = (0usize, 0f64);

@@ -772,7 +772,7 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
     }
     let report = run.report;
     tracing::info!(
-        "{} of {} frames processed, {} fixes ({} rejected for too few inliers, {} for too small a share of inliers, {} acquisitions for too few of the templates searched for, {} for inliers on a line or in a cluster, {} for their height, {} as inconsistent with the inertial filter, {} acquisitions held for the next frame to confirm; {} frames without a fix updated the filter with their matches; {} frames updated it with the landmarks tracked from the image before), median {:.1} ms per frame; wrote {}, {} and {}",
+        "{} of {} frames processed, {} fixes ({} rejected for too few inliers, {} for too small a share of inliers, {} acquisitions for too few of the templates searched for, {} for inliers on a line or in a cluster, {} for their height, {} as inconsistent with the inertial filter, {} acquisitions held for the next frame to confirm; {} frames without a fix updated the filter with their matches; {} frames updated it with the landmarks tracked from the image before; {} frames without a fix, in a run of them, doubted its pose), median {:.1} ms per frame; wrote {}, {} and {}",
         report.processed,
         report.frames,
         report.fixes,
@@ -785,11 +785,22 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
         report.rejected.unconfirmed,
         report.prior_gated_updates,
         report.track_updates,
+        report.doubted_frames,
         report.median_ms,
         a.out.display(),
         matches_path.display(),
         cov_path.display()
     );
+    if let Some(first) = report.skipped_images.first() {
+        tracing::warn!(
+            "{} of {} frames had no usable image (the first at t {:.3} s: {}: {}); their poses were carried (status propagated), and the report lists them",
+            report.skipped_images.len(),
+            report.frames,
+            first.t,
+            first.image.display(),
+            first.reason
+        );
+    }
     if let Some(o) = &report.time_offset {
         tracing::info!("camera-IMU time offset: {:+.2} ms +- {:.2} ms", o.offset_ms, o.sigma_ms);
     }

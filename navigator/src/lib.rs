@@ -171,6 +171,16 @@ pub struct RunReport {
     /// Frames whose landmarks, found in the image before too, updated the
     /// tight filter through the motion in between (`NavParams::track_update`).
     pub track_updates: usize,
+    /// Frames without a fix, after one and after others in a row, that
+    /// doubted the filter's pose (its uncertainty grown, the next fix a
+    /// restart: `Navigator::doubt_prediction`).
+    pub doubted_frames: usize,
+    /// Frames whose image could not be used (their pose carried, status
+    /// `propagated`), in time order.
+    pub skipped_images: Vec<SkippedImage>,
+    /// Stretches of `imu.csv` without samples, longer than
+    /// [`IMU_GAP_FACTOR`] times its median interval.
+    pub imu_gaps: Vec<propagate::ImuGap>,
     /// The camera's self-calibration at the end (`None`: off).
     pub calibration: Option<CalibrationReport>,
     /// The camera-IMU time offset the inertial filter ends with (`None`:
@@ -270,6 +280,35 @@ pub struct RejectedCounts {
     pub narrow_held: usize,
 }
 
+/// An interval between IMU samples longer than this many times the log's
+/// median is reported as a gap ([`propagate::imu_gaps`]).
+pub const IMU_GAP_FACTOR: f64 = 5.0;
+
+/// A frame whose image could not be used.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct SkippedImage {
+    /// The frame's time (s).
+    pub t: f64,
+    pub image: PathBuf,
+    /// What was wrong with it.
+    pub reason: String,
+}
+
+/// [`load_grey`], checked against the camera's size.
+fn load_frame_image(path: &Path, camera: &trn_camera::CameraModel) -> Result<image::GreyImage, NavError> {
+    let img = load_grey(path)?;
+    if img.width != camera.width as usize || img.height != camera.height as usize {
+        return Err(NavError::Image {
+            path: path.into(),
+            reason: format!(
+                "{}x{} pixels, but camera.json says {}x{}",
+                img.width, img.height, camera.width, camera.height
+            ),
+        });
+    }
+    Ok(img)
+}
+
 /// Reads a flight image as grey levels (RGB by Rec. 601 luma).
 pub fn load_grey(path: &Path) -> Result<image::GreyImage, NavError> {
     let img =
@@ -338,6 +377,19 @@ pub fn run_flight(
     };
     let mut next_due = f64::NEG_INFINITY;
     let mut rejected = RejectedCounts::default();
+    let imu_gaps = propagate::imu_gaps(&flight.imu, IMU_GAP_FACTOR);
+    if let Some(longest) = imu_gaps.iter().max_by(|a, b| (a.to_t - a.from_t).total_cmp(&(b.to_t - b.from_t)))
+    {
+        tracing::warn!(
+            "imu.csv: {} gap(s) without samples, the longest {:.3} s from t {:.3} s: a turn there is missed until frames that do not fix doubt the pose",
+            imu_gaps.len(),
+            longest.to_t - longest.from_t,
+            longest.from_t
+        );
+    }
+    let mut skipped = Vec::new();
+    let mut first_error = None;
+    let mut images_read = 0;
     for (i, frame) in flight.frames.iter().enumerate() {
         progress(i);
         // Rate downsampling, except right after a rejected fix.
@@ -345,18 +397,34 @@ pub fn run_flight(
             continue;
         }
         let path = flight.image_path(frame);
-        let img = load_grey(&path)?;
-        if img.width != flight.camera.model.width as usize
-            || img.height != flight.camera.model.height as usize
-        {
-            return Err(NavError::Image {
-                path,
-                reason: format!(
-                    "{}x{} pixels, but camera.json says {}x{}",
-                    img.width, img.height, flight.camera.model.width, flight.camera.model.height
-                ),
-            });
-        }
+        let img = match load_frame_image(&path, &flight.camera.model) {
+            Ok(img) => img,
+            Err(e) => {
+                // One bad image is a frame without a picture; a flight
+                // without one readable image is an error (below).
+                if skipped.len() < 5 {
+                    tracing::warn!("{e}: frame t {:.3} s carried without it", frame.t);
+                } else {
+                    tracing::debug!("{e}: frame t {:.3} s carried without it", frame.t);
+                }
+                if let NavError::Image { path, reason } = &e {
+                    skipped.push(SkippedImage { t: frame.t, image: path.clone(), reason: reason.clone() });
+                }
+                first_error.get_or_insert(e);
+                if opts.imu_rate && !records.is_empty() {
+                    imu_rate
+                        .extend(nav.poses_until(frame.t).into_iter().map(|p| row(p, FixStatus::Propagated)));
+                }
+                let record = nav.carry_without_image(frame.t);
+                if opts.imu_rate {
+                    imu_rate.extend(nav.filter_pose(frame.t).map(|p| row(p, FixStatus::Propagated)));
+                }
+                records.push(record);
+                next_due = f64::NEG_INFINITY;
+                continue;
+            }
+        };
+        images_read += 1;
         let picture_of = opts.matches_dir.as_ref().map(|dir| (dir, img.clone()));
         if opts.imu_rate && !records.is_empty() {
             imu_rate.extend(nav.poses_until(frame.t).into_iter().map(|p| row(p, FixStatus::Propagated)));
@@ -392,6 +460,11 @@ pub fn run_flight(
         matches.extend(r.matches);
         covariances.extend(r.covariance);
     }
+    if images_read == 0 {
+        if let Some(e) = first_error {
+            return Err(e);
+        }
+    }
     let mut ms: Vec<f64> = records.iter().map(|r| r.ms).collect();
     ms.sort_by(f64::total_cmp);
     let report = RunReport {
@@ -402,6 +475,9 @@ pub fn run_flight(
         median_ms: ms.get(ms.len() / 2).copied().unwrap_or(0.0),
         prior_gated_updates: gated,
         track_updates: tracked,
+        doubted_frames: nav.doubted_frames(),
+        skipped_images: skipped,
+        imu_gaps,
         calibration: nav.calibration().map(CalibrationReport::of),
         time_offset: nav.inertial().map(|f| {
             let (offset, sigma) = f.time_offset();

@@ -5,7 +5,7 @@ use std::collections::HashMap;
 use std::time::Instant;
 
 use nalgebra::{DMatrix, DVector, Matrix2, Matrix3, Matrix6, SMatrix, UnitQuaternion, Vector2, Vector3};
-use tracing::debug;
+use tracing::{debug, info};
 use trn_camera::{CameraConfig, CameraModel, CameraPose, Pixel};
 use trn_flight::{FixStatus, ImuSample, MatchRecord, NavRecord, PoseCovariance, TimedPose};
 use trn_landmark::lighting::SunLight;
@@ -389,10 +389,17 @@ pub struct Navigator<'a> {
     /// The last frame's matches and the filter's pose then: the next
     /// frame's track update ([`crate::track`]).
     track: Option<TrackAnchor>,
-    /// A frame before the first fix gave none, and the filter's pose
-    /// uncertainty was inflated ([`Self::doubt_unconfirmed_guess`]): the
-    /// first fix restarts the pose, as an acquisition's does.
+    /// A frame gave no fix (before the first fix, or after
+    /// [`DOUBT_AFTER_MISSES`] in a row) and the filter's pose uncertainty was
+    /// inflated ([`Self::doubt_prediction`]): the next fix restarts the
+    /// pose, as an acquisition's does, and until then no match or track
+    /// updates the filter.
     guess_doubted: bool,
+    /// Misses since the last accepted fix ([`Self::count_miss`]).
+    misses: usize,
+    /// Frames whose miss, after a fix, grew the doubt
+    /// ([`Self::doubt_prediction`]).
+    doubted_frames: usize,
     /// The threads of [`NavParams::threads`] (`None`: one, the caller's).
     pool: Option<rayon::ThreadPool>,
     /// A fix has sized the map offset's prior ([`map_sigmas_for_gsd`]).
@@ -602,6 +609,17 @@ const ACQUISITION_MAX_PATCH_PX: usize = 23;
 /// tiles) two frames told 10 km off (east, west: 8 -> 10).
 const ACQUISITION_ALONG_SIGHT_STEP: f64 = 0.45;
 
+/// Misses after a fix (frames whose matches, as many as a fix needs, gave
+/// none: [`Navigator::count_miss`]) from which each further one doubts the
+/// filter's pose ([`Navigator::doubt_prediction`]): 2 s at the flights'
+/// 2 Hz. Frames under cloud, with fewer matches, do not count: a 30 s
+/// outage that doubted them all took 2.5-4.5 s to fix again after it
+/// (none in the 5 s left after 25-55 s), where it takes none. Measured on the 30 km nadir balloon with its gyro turned
+/// 2 deg in 20 ms (four samples of 100 deg/s more) or its IMU silent for 3 s:
+/// without the doubt the navigator fixed none of the 100 frames after
+/// (2.2 deg off, its search sized for 0.05 deg), never recovering.
+const DOUBT_AFTER_MISSES: usize = 4;
+
 /// The largest attitude sigma (deg, any axis) that frames without a first
 /// fix grow the guess's doubt to: 2.5 sigmas then span the widest field
 /// of view, and more only loosens the gyro's prior on the search.
@@ -798,6 +816,8 @@ impl<'a> Navigator<'a> {
             ins,
             track: None,
             guess_doubted: false,
+            misses: 0,
+            doubted_frames: 0,
             pool,
             map_sized: false,
             last_sensitivity: IntrinsicsSensitivity::NONE,
@@ -977,6 +997,7 @@ impl<'a> Navigator<'a> {
         if self.params.filter != FilterMode::Tight
             || !self.params.prior_gated_update
             || self.last_fix.is_none()
+            || self.guess_doubted
         {
             return 0;
         }
@@ -993,7 +1014,11 @@ impl<'a> Navigator<'a> {
     /// the tracks used (0: no update).
     fn track_update(&self, t: f64, filter: &mut Carried, current: &[TrackPoint]) -> usize {
         let (Carried::Ins(f), Some(anchor)) = (filter, &self.track) else { return 0 };
-        if self.params.filter != FilterMode::Tight || !self.params.track_update || self.last_fix.is_none() {
+        if self.params.filter != FilterMode::Tight
+            || !self.params.track_update
+            || self.last_fix.is_none()
+            || self.guess_doubted
+        {
             return 0;
         }
         let Some(o) = track_update(&self.camera, &self.q_imu_cam, f, anchor, current, &self.params.track)
@@ -1064,22 +1089,56 @@ impl<'a> Navigator<'a> {
         cal.pose_covariance_but(&frame, carried)
     }
 
-    /// Before the first fix, a frame that gave none says the initial guess
-    /// may be worse than `--init-sigma-m` / `--init-sigma-deg` claim: the
-    /// inertial filter's pose uncertainty doubles (not the velocity's: the
-    /// first fix then restarts the pose and keeps the velocity's prior), so
-    /// the search widens frame by frame up to an acquisition (a guess 3 km
-    /// off, told 300 m, is fixed on its third frame), up to sigmas of
-    /// [`DOUBT_MAX_ATTITUDE_DEG`] and [`DOUBT_MAX_POSITION_M`]. Once an image has
-    /// confirmed the pose, a frame without a fix (cloud) leaves the
-    /// covariance to the IMU.
-    fn doubt_unconfirmed_guess(&mut self, t: f64, filter: &mut Carried) {
-        if let (None, Carried::Ins(f)) = (self.last_fix, filter) {
-            let (k_att, k_pos) =
-                f.inflate_pose_within(2.0, DOUBT_MAX_ATTITUDE_DEG.to_radians(), DOUBT_MAX_POSITION_M);
-            debug!("t {t:.3}: no fix yet: the guess's uncertainty grows (attitude x{k_att:.2}, position x{k_pos:.2})");
-            self.guess_doubted = true;
+    /// A frame that gave no fix doubts the prediction. Before the first
+    /// fix it says the initial guess may be worse than `--init-sigma-m` /
+    /// `--init-sigma-deg` claim; after one, [`DOUBT_AFTER_MISSES`] misses
+    /// since it ([`Self::count_miss`]: frames whose matches did not agree)
+    /// say the filter's pose may be wrong by more than it claims (an IMU
+    /// glitch or gap turned the attitude), and each further miss doubts it
+    /// (`missed`: this frame was one). Either way the inertial filter's pose uncertainty doubles
+    /// (not the velocity's: the next fix then restarts the pose and keeps
+    /// the velocity's prior), so the search widens frame by frame up to an
+    /// acquisition (a guess 3 km off, told 300 m, is fixed on its third
+    /// frame), up to sigmas of [`DOUBT_MAX_ATTITUDE_DEG`] and
+    /// [`DOUBT_MAX_POSITION_M`].
+    fn doubt_prediction(&mut self, t: f64, filter: &mut Carried, missed: bool) {
+        let Carried::Ins(f) = filter else { return };
+        let after_fix = self.last_fix.is_some();
+        if after_fix && !(missed && self.misses >= DOUBT_AFTER_MISSES) {
+            return;
         }
+        let (k_att, k_pos) =
+            f.inflate_pose_within(2.0, DOUBT_MAX_ATTITUDE_DEG.to_radians(), DOUBT_MAX_POSITION_M);
+        if !after_fix {
+            debug!("t {t:.3}: no fix yet: the guess's uncertainty grows (attitude x{k_att:.2}, position x{k_pos:.2})");
+        } else {
+            if !self.guess_doubted {
+                info!("t {t:.3}: {} frames without a fix: the filter's pose is doubted until an image confirms one", self.misses);
+            }
+            debug!("t {t:.3}: {} frames without a fix: the pose's uncertainty grows (attitude x{k_att:.2}, position x{k_pos:.2})", self.misses);
+            self.doubted_frames += 1;
+        }
+        self.guess_doubted = true;
+    }
+
+    /// Counts a frame without a fix as a miss when its search found as
+    /// many matches as a fix needs (`--min-inliers`) and they did not agree
+    /// (no solution, too few inliers or too small a share of them): the
+    /// image showed landmarks where the prediction did not put them. A
+    /// frame with fewer matches (a cloud, a blank image) says nothing of the
+    /// pose and leaves it to the IMU, and nor does one whose matches agreed
+    /// but were refused for another reason (inliers in a cluster: a hole in
+    /// a cloud). Returns whether it counted.
+    fn count_miss(&mut self, matches: usize) -> bool {
+        let missed = matches >= self.params.min_inliers;
+        self.misses += usize::from(missed);
+        missed
+    }
+
+    /// Frames whose miss, after a fix, doubted the filter's pose
+    /// ([`Self::doubt_prediction`]).
+    pub fn doubted_frames(&self) -> usize {
+        self.doubted_frames
     }
 
     /// The pose to report for a frame without an accepted fix.
@@ -1255,6 +1314,28 @@ impl<'a> Navigator<'a> {
         self.calibration.as_ref()
     }
 
+    /// A frame taken at `t` whose image could not be used (unreadable,
+    /// missing, or not the camera's size): the pose is carried to `t` by the
+    /// gyro or the inertial filter, as a frame under cloud (status
+    /// `propagated`; not a miss, [`Self::count_miss`]).
+    pub fn carry_without_image(&mut self, t: f64) -> NavRecord {
+        let start = Instant::now();
+        self.update_camera(t);
+        let pred = self.predict(t);
+        self.carry(t, pred);
+        NavRecord {
+            pose: TimedPose {
+                t,
+                position: self.pose.position.to_geodetic(),
+                q_ecef_cam: self.pose.q_ecef_cam,
+            },
+            status: FixStatus::Propagated,
+            inliers: 0,
+            matches: 0,
+            ms: start.elapsed().as_secs_f64() * 1e3,
+        }
+    }
+
     /// Processes one image taken at `t`.
     pub fn process(&mut self, t: f64, image: GreyImage) -> FrameResult {
         let start = Instant::now();
@@ -1332,6 +1413,7 @@ impl<'a> Navigator<'a> {
                     }
                     let calibration_cov = self.calibrate(t, &mut sol, frame, &mut pred.filter);
                     self.last_fix = Some((t, sol.pose));
+                    self.misses = 0;
                     // A later acquisition in tiles starts from the nearest
                     // (one that failed its confirmation goes on from there).
                     self.acquisition_cursor = 0;
@@ -1349,6 +1431,11 @@ impl<'a> Navigator<'a> {
                     covariance = Some(PoseCovariance { t, position: self.pose.position.to_geodetic(), ecef });
                 } else {
                     debug!("t {t:.3}: fix rejected ({} inliers): {rejection:?}", sol.inliers);
+                    let disagreed = matches!(
+                        rejection,
+                        Some(Rejection::FewInliers { .. } | Rejection::InlierShare { .. })
+                    );
+                    let missed = disagreed && self.count_miss(sol.n_matches);
                     if let (Some(Rejection::Inconsistent { .. }), Carried::Ins(f)) =
                         (rejection, &mut pred.filter)
                     {
@@ -1361,7 +1448,7 @@ impl<'a> Navigator<'a> {
                         if !sol.acquisition && !matches!(rejection, Some(Rejection::Height { .. })) {
                             gated_matches = self.gated_update(t, &mut pred.filter, &found);
                         }
-                        self.doubt_unconfirmed_guess(t, &mut pred.filter);
+                        self.doubt_prediction(t, &mut pred.filter, missed);
                     }
                     self.carry(t, pred);
                 }
@@ -1369,8 +1456,9 @@ impl<'a> Navigator<'a> {
                 (status, sol.inliers, sol.n_matches, sol.records, sol.guess_px)
             }
             Err(NoSolution { matches, found }) => {
+                let missed = self.count_miss(matches);
                 gated_matches = self.gated_update(t, &mut pred.filter, &found);
-                self.doubt_unconfirmed_guess(t, &mut pred.filter);
+                self.doubt_prediction(t, &mut pred.filter, missed);
                 self.carry(t, pred);
                 (FixStatus::Propagated, 0, matches, Vec::new(), Vec::new())
             }

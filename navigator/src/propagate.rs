@@ -107,6 +107,32 @@ pub fn propagate_with_bias(
     Propagated { q_ecef_imu: earth * q_ecef_imu * body, bias_to_attitude: sens }
 }
 
+/// A stretch of the IMU log without samples.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct ImuGap {
+    /// The last sample before it and the first after (s).
+    pub from_t: f64,
+    pub to_t: f64,
+}
+
+/// The stretches between consecutive samples longer than `factor` times the
+/// log's median interval: there the next sample's rate is taken as the mean
+/// over the whole stretch ([`for_each_segment`]), which it was not, so a
+/// turn during it is missed (the navigator's doubt after frames that do not
+/// fix is what recovers from it).
+pub fn imu_gaps(imu: &[ImuSample], factor: f64) -> Vec<ImuGap> {
+    let mut dts: Vec<f64> = imu.windows(2).map(|w| w[1].t - w[0].t).collect();
+    if dts.is_empty() {
+        return Vec::new();
+    }
+    dts.sort_by(f64::total_cmp);
+    let limit = factor * dts[dts.len() / 2];
+    imu.windows(2)
+        .filter(|w| w[1].t - w[0].t > limit)
+        .map(|w| ImuGap { from_t: w[0].t, to_t: w[1].t })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -121,6 +147,23 @@ mod tests {
                 ImuSample { t, w_imu_rad_s: w(t - 0.5 / rate_hz), f_imu_m_s2: None }
             })
             .collect()
+    }
+
+    #[test]
+    fn gaps_are_the_intervals_beyond_the_median() {
+        let mut imu = samples(200.0, 10.0, |_| Vector3::zeros());
+        assert!(imu_gaps(&imu, 5.0).is_empty());
+        // One sample dropped is twice the interval: not a gap at 5x.
+        imu.remove(100);
+        assert!(imu_gaps(&imu, 5.0).is_empty());
+        // 3 s without samples from t = 4 s, and 30 ms from t = 8 s.
+        let dropped = |t: f64| (t > 4.0 && t < 7.0) || (t > 8.0 && t < 8.03);
+        imu.retain(|s| !dropped(s.t));
+        let gaps = imu_gaps(&imu, 5.0);
+        assert_eq!(gaps.len(), 2, "{gaps:?}");
+        assert!((gaps[0].from_t - 4.0).abs() < 1e-9 && (gaps[0].to_t - 7.0).abs() < 1e-9, "{gaps:?}");
+        assert!((gaps[1].to_t - gaps[1].from_t - 0.035).abs() < 1e-9, "{gaps:?}");
+        assert!(imu_gaps(&imu[..1], 5.0).is_empty());
     }
 
     #[test]

@@ -1,0 +1,78 @@
+#!/usr/bin/env bash
+# Sensor faults (issue #13: doubt it, report it, recover): a realistic flight
+# (run scripts/bench_realistic.sh first; default sierra-balloon-nadir, 30 km)
+# with its IMU changed, navigated by trn on the default database: a gyro
+# glitch (four samples over 20 ms turned about the IMU's x axis, DEG in all)
+# or a gap (no sample for SECONDS). Prints, per case, the fixes, the mean and
+# worst error of the fixes and the error at the last frame; results in
+# OUT/faults/results.md.
+# Usage: scripts/bench_faults.sh [CASE ...]   (CASE: none, glitch:DEG@T0 or
+#   gap:SECONDS@T0; default: none glitch:1@10 glitch:5@10 glitch:10@10
+#   glitch:30@10 gap:1@10 gap:3@10 gap:10@10 gap:3@30)
+# Environment: OUT=target/realistic; FLIGHT=another realistic flight's name;
+#   TRN=path of a trn binary (default: this checkout's, built); NAV_ARGS more
+#   trn navigate options.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+OUT=${OUT:-target/realistic}
+name=${FLIGHT:-sierra-balloon-nadir}
+src="$OUT/flights/$name"
+world=${name%%-*}
+db="$OUT/db/$world.gpkg"
+[ -f "$src/frames.csv" ] && [ -f "$db" ] || { echo "run scripts/bench_realistic.sh first ($src, $db)" >&2; exit 1; }
+if [ -z "${TRN:-}" ]; then cargo build --release --quiet --bin trn; fi
+trn=${TRN:-target/release/trn}
+read -r -a nav_args <<< "${NAV_ARGS:-}"
+cases=("$@")
+[ ${#cases[@]} -gt 0 ] || cases=(none glitch:1@10 glitch:5@10 glitch:10@10 glitch:30@10 gap:1@10 gap:3@10 gap:10@10 gap:3@30)
+work="$OUT/faults"
+rm -rf "$work"; mkdir -p "$work"
+rows=()
+for c in "${cases[@]}"; do
+  d="$work/${c//[:@]/-}"; f="$d/flight"
+  mkdir -p "$f"
+  # The flight's files, its images linked; imu.csv rewritten for the case.
+  for x in "$src"/*; do
+    case "$(basename "$x")" in imu.csv) ;; *) ln -s "$(readlink -f "$x")" "$f/";; esac
+  done
+  python3 - "$src/imu.csv" "$f/imu.csv" "$c" <<'PY'
+import csv, math, sys
+src, dst, case = sys.argv[1:4]
+rows = list(csv.reader(open(src)))
+head, body = rows[0], rows[1:]
+if case != "none":
+    kind, rest = case.split(":")
+    size, t0 = (float(x) for x in rest.split("@"))
+    if kind == "glitch":
+        rate = math.radians(size) / 0.02
+        for r in body:
+            if t0 < float(r[0]) <= t0 + 0.02 + 1e-9:
+                r[1] = repr(float(r[1]) + rate)
+    elif kind == "gap":
+        body = [r for r in body if not (t0 <= float(r[0]) < t0 + size)]
+    else:
+        sys.exit(f"unknown case {case!r}: none, glitch:DEG@T0 or gap:SECONDS@T0")
+csv.writer(open(dst, "w"), lineterminator="\n").writerows([head] + body)
+PY
+  "$trn" navigate --db "$db" --flight "$f" --out "$d/poses.csv" "${nav_args[@]}" > "$d/report.json" 2> "$d/log.txt"
+  "$trn" evaluate --flight "$f" --poses "$d/poses.csv" --json "$d/eval.json" > /dev/null 2>&1
+  rows+=("$(python3 - "$d/eval.json" "$d/report.json" "$c" <<'PY'
+import json, sys
+e = json.load(open(sys.argv[1]))['runs'][0]
+report = json.load(open(sys.argv[2]))
+fr = e['per_frame']
+fixes = [r['error']['pos_m'] for r in fr if r['status'] == 'fix']
+mean = sum(fixes) / len(fixes) if fixes else float('nan')
+worst = max(fixes) if fixes else float('nan')
+gaps = len(report.get('imu_gaps', []))
+print(f"| {sys.argv[3]} | {len(fixes)} of {len(fr)} | {mean:.1f} | {worst:.1f} | {fr[-1]['error']['pos_m']:.1f} | {report.get('doubted_frames', 'n/a')} | {gaps} |")
+PY
+)")
+done
+{
+  echo "Sensor faults: $name, default database"
+  echo
+  echo "| case | fixes | mean m | worst m | last frame's error m | doubted frames | IMU gaps reported |"
+  echo "|---|---:|---:|---:|---:|---:|---:|"
+  printf '%s\n' "${rows[@]}"
+} | tee "$work/results.md"

@@ -1135,8 +1135,9 @@ impl<'a> Navigator<'a> {
         missed
     }
 
-    /// Frames whose miss, after a fix, doubted the filter's pose
-    /// ([`Self::doubt_prediction`]).
+    /// Frames whose miss, after a fix, doubted the filter's pose (after
+    /// four frames whose matches did not agree, each further one doubles its
+    /// attitude and position sigmas).
     pub fn doubted_frames(&self) -> usize {
         self.doubted_frames
     }
@@ -1317,7 +1318,8 @@ impl<'a> Navigator<'a> {
     /// A frame taken at `t` whose image could not be used (unreadable,
     /// missing, or not the camera's size): the pose is carried to `t` by the
     /// gyro or the inertial filter, as a frame under cloud (status
-    /// `propagated`; not a miss, [`Self::count_miss`]).
+    /// `propagated`; not a miss that doubts the pose, see
+    /// [`Self::doubted_frames`]).
     pub fn carry_without_image(&mut self, t: f64) -> NavRecord {
         let start = Instant::now();
         self.update_camera(t);

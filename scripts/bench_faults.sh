@@ -4,8 +4,9 @@
 # with its IMU changed, navigated by trn on the default database: a gyro
 # glitch (four samples over 20 ms turned about the IMU's x axis, DEG in all)
 # or a gap (no sample for SECONDS). Prints, per case, the fixes, the mean and
-# worst error of the fixes and the error at the last frame; results in
-# OUT/faults/results.md.
+# worst error of the fixes, the error at the last frame, and what the run
+# report says: gyro jumps doubted, frames doubted after a run of misses, IMU
+# gaps; results in OUT/faults/results.md.
 # Usage: scripts/bench_faults.sh [CASE ...]   (CASE: none, glitch:DEG@T0 or
 #   gap:SECONDS@T0; default: none glitch:1@10 glitch:5@10 glitch:10@10
 #   glitch:30@10 gap:1@10 gap:3@10 gap:10@10 gap:3@30)
@@ -65,14 +66,14 @@ fixes = [r['error']['pos_m'] for r in fr if r['status'] == 'fix']
 mean = sum(fixes) / len(fixes) if fixes else float('nan')
 worst = max(fixes) if fixes else float('nan')
 gaps = len(report.get('imu_gaps', []))
-print(f"| {sys.argv[3]} | {len(fixes)} of {len(fr)} | {mean:.1f} | {worst:.1f} | {fr[-1]['error']['pos_m']:.1f} | {report.get('doubted_frames', 'n/a')} | {gaps} |")
+print(f"| {sys.argv[3]} | {len(fixes)} of {len(fr)} | {mean:.1f} | {worst:.1f} | {fr[-1]['error']['pos_m']:.1f} | {report.get('gyro_jumps', 'n/a')} | {report.get('doubted_frames', 'n/a')} | {gaps} |")
 PY
 )")
 done
 {
   echo "Sensor faults: $name, default database"
   echo
-  echo "| case | fixes | mean m | worst m | last frame's error m | doubted frames | IMU gaps reported |"
-  echo "|---|---:|---:|---:|---:|---:|---:|"
+  echo "| case | fixes | mean m | worst m | last frame's error m | gyro jumps doubted | frames doubted | IMU gaps reported |"
+  echo "|---|---:|---:|---:|---:|---:|---:|---:|"
   printf '%s\n' "${rows[@]}"
 } | tee "$work/results.md"

@@ -320,6 +320,11 @@ struct NavigateArgs {
     /// Gyro bias uncertainty assumed by the attitude filter at the start (deg/h, 1 sigma).
     #[arg(long, default_value_t = 20.0)]
     gyro_bias: f64,
+    /// A gyro rate that jumps by more than this from one sample to the next
+    /// (deg/s; 0: never) is doubted by the inertial filter: the angle it turns
+    /// beyond the rate before widens the attitude's uncertainty.
+    #[arg(long, default_value_t = 10.0)]
+    gyro_max_jump: f64,
     /// Write a picture per processed frame here: inliers green, outliers red,
     /// where the pose guess predicted each landmark blue with a line to the match.
     #[arg(long)]
@@ -712,6 +717,7 @@ fn nav_params(a: &NavigateArgs) -> trn_navigator::NavParams {
     params.shading_weight = a.shading_weight;
     params.gyro_arw_deg_sqrt_s = a.gyro_arw / 60.0;
     params.gyro_bias_deg_s = a.gyro_bias / 3600.0;
+    params.gyro_max_jump_deg_s = a.gyro_max_jump;
     params.calibration = (!a.no_self_calibration).then(|| trn_navigator::calibration::CalibrationParams {
         focal_sigma_rel: a.focal_sigma / 100.0,
         principal_sigma_px: a.principal_point_sigma,
@@ -791,6 +797,13 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
         matches_path.display(),
         cov_path.display()
     );
+    if report.gyro_jumps > 0 {
+        tracing::warn!(
+            "{} gyro rate jump(s) beyond {} deg/s from one sample to the next: the angle each turned was doubted (--gyro-max-jump)",
+            report.gyro_jumps,
+            a.gyro_max_jump
+        );
+    }
     if let Some(first) = report.skipped_images.first() {
         tracing::warn!(
             "{} of {} frames had no usable image (the first at t {:.3} s: {}: {}); their poses were carried (status propagated), and the report lists them",

@@ -509,6 +509,7 @@ fn bad_inputs_are_named() {
         ("--init-sigma-deg", "inf"),
         ("--gyro-arw", "0"),
         ("--gyro-bias", "nan"),
+        ("--gyro-max-jump", "nan"),
         ("--matches-dir", file.to_str().unwrap()),
         ("--shading-weight", "1.5"),
         ("--sun", "250"),
@@ -813,22 +814,22 @@ fn edit_imu(flight: &Path, mut edit: impl FnMut(&mut [f64]) -> bool) {
 /// realistic 30 km nadir balloon (10 s) with its gyro turned 3 deg in
 /// 20 ms (four samples of 150 deg/s more about the IMU's x axis, at 2 s),
 /// with its IMU silent for 2 s (from 2 s), and with unreadable images.
-/// Before the navigator doubted a run of frames whose matches did not
-/// agree, such a turn left it searching 3 deg from the landmarks for the
-/// rest of the flight (the full 60 s flight: 21 of 121 frames fixed, all
-/// before it; README, Integrity).
+/// Before the navigator doubted a gyro's jumps and a run of frames whose
+/// matches did not agree, such a turn left it searching 3 deg from the
+/// landmarks for the rest of the flight (the full 60 s flight turned 5 deg:
+/// 21 of 121 frames fixed, all before it; `scripts/bench_faults.sh`).
 #[test]
 fn recovers_from_a_gyro_glitch_an_imu_gap_and_bad_images() {
     let dir = tempfile::tempdir().unwrap();
     let (db, flight) = realistic_flight(dir.path(), "sierra-balloon-nadir", 300.0, "10");
     // Navigates a copy of the flight changed by `change`: (report, rows, worst fix m).
-    let run_changed = |name: &str, change: &dyn Fn(&Path)| {
+    let run_changed = |name: &str, change: &dyn Fn(&Path), extra: &[&str]| {
         let copy = dir.path().join(name);
         copy_flight(&flight, &copy);
         change(&copy);
         let s = NavFixture { dir: tempfile::tempdir().unwrap(), db: db.clone(), flight: copy };
         let poses = s.root().join("poses.csv");
-        let o = navigate(&s, &poses, &[]);
+        let o = navigate(&s, &poses, extra);
         assert!(o.status.success(), "{name}: navigate failed: {}", stderr(&o));
         let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
         let e = evaluate(&s, &poses);
@@ -847,7 +848,16 @@ fn recovers_from_a_gyro_glitch_an_imu_gap_and_bad_images() {
             true
         })
     };
-    let (report, r, worst, _) = run_changed("glitch", &glitch);
+    // The jump from one gyro sample to the next is doubted at once: the
+    // next frame searches wide enough, and every frame fixes.
+    let (report, r, worst, _) = run_changed("glitch", &glitch, &[]);
+    assert_eq!(report["gyro_jumps"], 1, "{report}");
+    assert!(r.iter().all(|x| x.1 == "fix"), "{r:?}");
+    assert!(worst < 250.0, "{worst:.1} m");
+    // Not watched for (`--gyro-max-jump 0`): the frames whose matches do not
+    // agree doubt the pose.
+    let (report, r, worst, _) = run_changed("glitch-unwatched", &glitch, &["--gyro-max-jump", "0"]);
+    assert_eq!(report["gyro_jumps"], 0, "{report}");
     let missed = r.iter().filter(|x| x.0 > 2.0 && x.1 != "fix").count();
     assert!(missed >= 4, "the turn costs frames: {r:?}");
     assert!(report["doubted_frames"].as_u64().unwrap() >= 1, "{report}");
@@ -855,7 +865,7 @@ fn recovers_from_a_gyro_glitch_an_imu_gap_and_bad_images() {
     assert!(worst < 250.0, "no fix a navigator should not trust: {worst:.1} m");
 
     let gap = |f: &Path| edit_imu(f, |v| !(v[0] > 2.0 && v[0] < 4.0));
-    let (report, r, worst, log) = run_changed("gap", &gap);
+    let (report, r, worst, log) = run_changed("gap", &gap, &[]);
     let gaps = report["imu_gaps"].as_array().unwrap();
     assert_eq!(gaps.len(), 1, "{report}");
     let (from, to) = (gaps[0]["from_t"].as_f64().unwrap(), gaps[0]["to_t"].as_f64().unwrap());
@@ -874,7 +884,7 @@ fn recovers_from_a_gyro_glitch_an_imu_gap_and_bad_images() {
         std::fs::write(&first, &bytes[..bytes.len() / 3]).unwrap();
         image::GrayImage::new(64, 48).save(f.join(images[7])).unwrap();
     };
-    let (report, r, worst, log) = run_changed("bad-images", &bad_images);
+    let (report, r, worst, log) = run_changed("bad-images", &bad_images, &[]);
     let skipped = report["skipped_images"].as_array().unwrap();
     assert_eq!(skipped.len(), 2, "{report}");
     assert!(skipped[0]["image"].as_str().unwrap().ends_with("000003.png"), "{skipped:?}");

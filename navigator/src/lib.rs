@@ -114,6 +114,9 @@ impl RunOptions {
         if !positive(p.gyro_bias_deg_s) {
             return bad("--gyro-bias", "must be deg/h > 0");
         }
+        if !(p.gyro_max_jump_deg_s.is_finite() && p.gyro_max_jump_deg_s >= 0.0) {
+            return bad("--gyro-max-jump", "must be deg/s >= 0 (0: never doubted)");
+        }
         for (option, v) in [
             ("--init-velocity-sigma", p.init_velocity_sigma_m_s),
             ("--accel-bias", p.accel_bias_m_s2),
@@ -181,6 +184,8 @@ pub struct RunReport {
     /// Stretches of `imu.csv` without samples, longer than
     /// [`IMU_GAP_FACTOR`] times its median interval.
     pub imu_gaps: Vec<propagate::ImuGap>,
+    /// Gyro rate jumps the inertial filter doubted (`--gyro-max-jump`).
+    pub gyro_jumps: usize,
     /// The camera's self-calibration at the end (`None`: off).
     pub calibration: Option<CalibrationReport>,
     /// The camera-IMU time offset the inertial filter ends with (`None`:
@@ -478,6 +483,7 @@ pub fn run_flight(
         doubted_frames: nav.doubted_frames(),
         skipped_images: skipped,
         imu_gaps,
+        gyro_jumps: nav.inertial().map_or(0, |f| f.gyro_jumps),
         calibration: nav.calibration().map(CalibrationReport::of),
         time_offset: nav.inertial().map(|f| {
             let (offset, sigma) = f.time_offset();

@@ -110,6 +110,10 @@ pub struct NavParams {
     pub gyro_bias_deg_s: f64,
     pub gyro_arw_deg_sqrt_s: f64,
     pub gyro_bias_walk_deg_s_sqrt_s: f64,
+    /// A gyro rate jump from one sample to the next beyond this (deg/s; 0:
+    /// none) is doubted by the inertial filter
+    /// ([`crate::ins::InsErrors::gyro_max_jump_rad_s`]).
+    pub gyro_max_jump_deg_s: f64,
     /// Velocity uncertainty between fixes (m/s) in [`FilterMode::Fixes`].
     pub velocity_sigma_m_s: f64,
     /// The inertial filter's initial velocity uncertainty (m/s; the initial
@@ -212,6 +216,7 @@ impl Default for NavParams {
             // deg/sqrt(h)); the bias walks 0.01 deg/h per sqrt(s).
             gyro_bias_deg_s: 20.0 / 3600.0,
             gyro_arw_deg_sqrt_s: 0.3 / 60.0,
+            gyro_max_jump_deg_s: 10.0,
             gyro_bias_walk_deg_s_sqrt_s: 0.01 / 3600.0,
             velocity_sigma_m_s: 20.0,
             init_velocity_sigma_m_s: 300.0,
@@ -775,6 +780,7 @@ impl<'a> Navigator<'a> {
                     map_att_sigma_rad: map_start.1.to_radians(),
                     focal_walk_rel_sqrt_s: focal_prior.map_or(0.0, |c| c.focal_walk_rel_sqrt_s),
                     principal_walk_px_sqrt_s: principal_prior.map_or(0.0, |c| c.principal_walk_px_sqrt_s),
+                    gyro_max_jump_rad_s: deg_s(params.gyro_max_jump_deg_s),
                 },
             )
         });
@@ -3010,6 +3016,7 @@ mod tests {
             map_tau_s: 10.0,
             map_att_sigma_rad: 0.0,
             focal_walk_rel_sqrt_s: 0.0,
+            gyro_max_jump_rad_s: 0.0,
             principal_walk_px_sqrt_s: 0.0,
         };
         // Within +-300 m of the nadir point: +-38 px of a 640 x 480 image.

@@ -304,6 +304,7 @@ mod tests {
             map_tau_s: 10.0,
             map_att_sigma_rad: 0.0,
             focal_walk_rel_sqrt_s: 0.0,
+            gyro_max_jump_rad_s: 0.0,
             principal_walk_px_sqrt_s: 0.0,
         };
         let mut truth = InsFilter::new(state(true_velocity), &init, errors);

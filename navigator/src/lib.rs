@@ -174,9 +174,9 @@ pub struct RunReport {
     /// Frames whose landmarks, found in the image before too, updated the
     /// tight filter through the motion in between (`NavParams::track_update`).
     pub track_updates: usize,
-    /// Frames without a fix, after one and after others in a row, that
-    /// doubted the filter's pose (its uncertainty grown, the next fix a
-    /// restart: `Navigator::doubt_prediction`).
+    /// Frames without a fix that doubted the filter's pose, after a fix and
+    /// four misses since it (frames whose matches did not agree): its
+    /// uncertainty grown, the next fix a restart.
     pub doubted_frames: usize,
     /// Frames whose image could not be used (their pose carried, status
     /// `propagated`), in time order.

@@ -395,7 +395,7 @@ pub struct Navigator<'a> {
     /// frame's track update ([`crate::track`]).
     track: Option<TrackAnchor>,
     /// A frame gave no fix (before the first fix, or after
-    /// [`DOUBT_AFTER_MISSES`] in a row) and the filter's pose uncertainty was
+    /// [`DOUBT_AFTER_MISSES`] misses since it) and the filter's pose uncertainty was
     /// inflated ([`Self::doubt_prediction`]): the next fix restarts the
     /// pose, as an acquisition's does, and until then no match or track
     /// updates the filter.
@@ -614,15 +614,18 @@ const ACQUISITION_MAX_PATCH_PX: usize = 23;
 /// tiles) two frames told 10 km off (east, west: 8 -> 10).
 const ACQUISITION_ALONG_SIGHT_STEP: f64 = 0.45;
 
-/// Misses after a fix (frames whose matches, as many as a fix needs, gave
-/// none: [`Navigator::count_miss`]) from which each further one doubts the
-/// filter's pose ([`Navigator::doubt_prediction`]): 2 s at the flights'
-/// 2 Hz. Frames under cloud, with fewer matches, do not count: a 30 s
-/// outage that doubted them all took 2.5-4.5 s to fix again after it
-/// (none in the 5 s left after 25-55 s), where it takes none. Measured on the 30 km nadir balloon with its gyro turned
-/// 2 deg in 20 ms (four samples of 100 deg/s more) or its IMU silent for 3 s:
-/// without the doubt the navigator fixed none of the 100 frames after
-/// (2.2 deg off, its search sized for 0.05 deg), never recovering.
+/// Misses since the last fix (frames whose matches, as many as a fix
+/// needs, did not agree: [`Navigator::count_miss`]) from which each further
+/// one doubts the filter's pose ([`Navigator::doubt_prediction`]): 2 s at
+/// the flights' 2 Hz. Frames under cloud, with fewer matches, do not count:
+/// a 30 s outage that doubted them all took 2.5-4.5 s to fix again after it
+/// (none in the 5 s left after 25-55 s), where it takes none. Measured on
+/// the 30 km nadir balloon with its IMU silent for 3 s, or its gyro turned
+/// 5 deg in 20 ms with `--gyro-max-jump 0` (the jump's own doubt catches
+/// that first): without this doubt the navigator fixed none of the 100
+/// frames after (2.2 deg off, its search sized for 0.05 deg), never
+/// recovering; with it 115 and 113 of the 121 frames
+/// (`scripts/bench_faults.sh`).
 const DOUBT_AFTER_MISSES: usize = 4;
 
 /// The largest attitude sigma (deg, any axis) that frames without a first

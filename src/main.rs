@@ -325,6 +325,12 @@ struct NavigateArgs {
     /// beyond the rate before widens the attitude's uncertainty.
     #[arg(long, default_value_t = 10.0)]
     gyro_max_jump: f64,
+    /// Through a gap in imu.csv (an interval over 5 times its median), the
+    /// doubt on the rate interpolated between the samples either side
+    /// (deg/s/sqrt(s), a random walk; 0: none): the attitude's sigma grows as
+    /// DOUBT * sqrt(t^3 / 3) t seconds into the gap, up to 10 deg.
+    #[arg(long, default_value_t = 3.0)]
+    imu_gap_doubt: f64,
     /// Write a picture per processed frame here: inliers green, outliers red,
     /// where the pose guess predicted each landmark blue with a line to the match.
     #[arg(long)]
@@ -718,6 +724,7 @@ fn nav_params(a: &NavigateArgs) -> trn_navigator::NavParams {
     params.gyro_arw_deg_sqrt_s = a.gyro_arw / 60.0;
     params.gyro_bias_deg_s = a.gyro_bias / 3600.0;
     params.gyro_max_jump_deg_s = a.gyro_max_jump;
+    params.imu_gap_doubt_deg_s_sqrt_s = a.imu_gap_doubt;
     params.calibration = (!a.no_self_calibration).then(|| trn_navigator::calibration::CalibrationParams {
         focal_sigma_rel: a.focal_sigma / 100.0,
         principal_sigma_px: a.principal_point_sigma,

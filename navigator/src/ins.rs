@@ -11,7 +11,10 @@
 //! `v <- v + (R f + g(r) - 2 we x v) dt`, `r <- r + (v_old + v) dt / 2`, with
 //! `g` gravity ([`trn_geodesy::gravity`]: J2 gravitation plus the
 //! centrifugal term). Without accelerometer samples the velocity is carried
-//! as a random walk of [`InsErrors::free_accel_m_s2_sqrt_s`].
+//! as a random walk of [`InsErrors::free_accel_m_s2_sqrt_s`]. Through a gap
+//! in the IMU log ([`InsErrors::imu_gap_s`]) the rate and the specific force
+//! are interpolated between the samples either side, and the attitude is
+//! doubted as the gap goes on ([`InsErrors::gap_rate_walk_rad_s_sqrt_s`]).
 //!
 //! **Error state** (the order of [`InsFilter::covariance`]), truth = estimate
 //! plus error: `[dtheta (rad, ECEF: q = exp(dtheta) q_est); dr (m); dv (m/s);
@@ -123,7 +126,29 @@ pub struct InsErrors {
     /// turns beyond that rate is doubted: added to the attitude's sigma
     /// about the jump's axis (see [`InsFilter::propagate`]).
     pub gyro_max_jump_rad_s: f64,
+    /// An interval between two IMU samples longer than this (s; 0: none)
+    /// is a *gap*: samples were lost. Through it the rate and the specific
+    /// force are interpolated between the samples on either side, the
+    /// velocity walks as without an accelerometer
+    /// ([`Self::free_accel_m_s2_sqrt_s`]), and the attitude is doubted by
+    /// [`Self::gap_rate_walk_rad_s_sqrt_s`].
+    pub imu_gap_s: f64,
+    /// The unmeasured rate's departure from that interpolation through a
+    /// gap, as a random walk (rad/s/sqrt(s)): `tau` seconds into the gap the
+    /// attitude's variance per axis has grown by `sigma^2 tau^3 / 3`, while
+    /// its sigma is under [`IMU_GAP_MAX_ANGLE_DEG`].
+    pub gap_rate_walk_rad_s_sqrt_s: f64,
 }
+
+/// A gap in the IMU log grows the attitude's sigma up to this (deg, per
+/// axis): beyond, the frames that then do not fix widen the search (the
+/// navigator's doubt after a run of misses), as after a gyro jump. A fix
+/// in the gap shrinks it, and the gap grows it again (the rate is still
+/// unknown).
+pub const IMU_GAP_MAX_ANGLE_DEG: f64 = 10.0;
+
+/// Sub-step of the propagation through a gap (s).
+const GAP_STEP_S: f64 = 0.01;
 
 /// How long a gyro jump is doubted at most (s): a rate that stays away from
 /// the one before is a turn the platform made.
@@ -206,6 +231,11 @@ pub struct InsFilter {
     jump: Option<GyroJump>,
     /// Gyro jumps doubted so far.
     pub gyro_jumps: usize,
+    /// The gap in the IMU log being crossed: its first sample's time.
+    gap: Option<f64>,
+    /// Time crossed in gaps of the IMU log so far (s): between two states
+    /// whose values differ, the gyro did not measure all of the turn.
+    pub gap_crossed_s: f64,
 }
 
 fn block(p: &mut Covariance, at: usize, sigma: f64) {
@@ -267,6 +297,8 @@ impl InsFilter {
             last_gyro_rad_s: None,
             jump: None,
             gyro_jumps: 0,
+            gap: None,
+            gap_crossed_s: 0.0,
         }
     }
 
@@ -274,8 +306,10 @@ impl InsFilter {
     /// (each gyro sample the mean rate over the interval ending at its time,
     /// each accelerometer sample the specific force at its time, linearly
     /// interpolated in between). Time no sample covers keeps the attitude
-    /// fixed in inertial space and the velocity as it was. `t1` before the
-    /// state's time does nothing.
+    /// fixed in inertial space and the velocity as it was. An interval
+    /// longer than [`InsErrors::imu_gap_s`] is a gap: crossed on
+    /// interpolated rates, the attitude doubted. `t1` before the state's
+    /// time does nothing.
     pub fn propagate(&mut self, t1: f64, imu: &[ImuSample]) {
         let t0 = self.state.t;
         if !(t1 > t0) {
@@ -287,8 +321,13 @@ impl InsFilter {
                 self.step(b - a, None, Force::Free, &mut acc);
                 return;
             };
-            self.watch_gyro(&imu[k].w_imu_rad_s, b - a, &mut acc);
             let (begin, end) = (if k > 0 { imu[k - 1].t } else { a }, imu[k].t);
+            if k > 0 && self.errors.imu_gap_s > 0.0 && end - begin > self.errors.imu_gap_s {
+                self.cross_gap(a, b, &imu[k - 1], &imu[k], &mut acc);
+                return;
+            }
+            self.gap = None;
+            self.watch_gyro(&imu[k].w_imu_rad_s, b - a, &mut acc);
             let force = match (k.checked_sub(1).and_then(|j| imu[j].f_imu_m_s2), imu[k].f_imu_m_s2) {
                 (Some(f0), Some(f1)) if end > begin => {
                     let s = ((0.5 * (a + b) - begin) / (end - begin)).clamp(0.0, 1.0);
@@ -301,6 +340,48 @@ impl InsFilter {
         });
         self.flush(&mut acc);
         self.state.t = t1;
+    }
+
+    /// The part `[a, b]` of a gap between the samples `before` and `after`
+    /// ([`InsErrors::imu_gap_s`]): in steps of [`GAP_STEP_S`], the rate and
+    /// the specific force interpolated linearly between the two samples'
+    /// (the sample after a gap is the rate over its own interval, not the
+    /// mean over the gap: taken so, a 3 s gap left a balloon's pendulum
+    /// 2.2 deg off), the velocity noise of a flight without accelerometer,
+    /// and the attitude doubted as the interpolated rate's error grows
+    /// ([`InsErrors::gap_rate_walk_rad_s_sqrt_s`]). The gyro's jump watch
+    /// restarts at the sample after.
+    fn cross_gap(&mut self, a: f64, b: f64, before: &ImuSample, after: &ImuSample, acc: &mut Accumulated) {
+        let (begin, end) = (before.t, after.t);
+        self.gap = Some(begin);
+        self.jump = None;
+        self.last_gyro_rad_s = Some(after.w_imu_rad_s);
+        self.gap_crossed_s += b - a;
+        let walk = self.errors.gap_rate_walk_rad_s_sqrt_s;
+        let cap = IMU_GAP_MAX_ANGLE_DEG.to_radians().powi(2);
+        let free = self.errors.free_accel_m_s2_sqrt_s.powi(2);
+        let steps = ((b - a) / GAP_STEP_S).ceil().max(1.0);
+        let dt = (b - a) / steps;
+        for i in 0..steps as usize {
+            let (s0, s1) = (a + dt * i as f64, a + dt * (i + 1) as f64);
+            let s = ((0.5 * (s0 + s1) - begin) / (end - begin)).clamp(0.0, 1.0);
+            let w = before.w_imu_rad_s + (after.w_imu_rad_s - before.w_imu_rad_s) * s;
+            let force = match (before.f_imu_m_s2, after.f_imu_m_s2) {
+                (Some(f0), Some(f1)) => Force::Measured(f0 + (f1 - f0) * s),
+                _ => Force::Free,
+            };
+            // sigma^2 (tau1^3 - tau0^3) / 3 over the step, up to the cap
+            // (on the variance the axes will have at the flush).
+            let (tau0, tau1) = (s0 - begin, s1 - begin);
+            let now =
+                (0..3).map(|j| self.covariance[(ATT + j, ATT + j)] + acc.q[ATT + j]).fold(0.0, f64::max);
+            let added = (walk * walk * (tau1.powi(3) - tau0.powi(3)) / 3.0).min((cap - now).max(0.0));
+            for j in 0..3 {
+                acc.q[ATT + j] += added;
+                acc.q[VEL + j] += free * dt;
+            }
+            self.step(dt, Some(&w), force, acc);
+        }
     }
 
     /// The gyro's plausibility ([`InsErrors::gyro_max_jump_rad_s`]): a rate
@@ -1101,6 +1182,8 @@ mod tests {
             map_att_sigma_rad: 0.0,
             focal_walk_rel_sqrt_s: 0.0,
             gyro_max_jump_rad_s: 0.0,
+            imu_gap_s: 0.0,
+            gap_rate_walk_rad_s_sqrt_s: 0.0,
             principal_walk_px_sqrt_s: 0.0,
         }
     }
@@ -1206,6 +1289,82 @@ mod tests {
         let p = f.covariance.fixed_view::<3, 3>(ATT, ATT);
         let along = (axis.transpose() * p * axis)[0].sqrt().to_degrees();
         assert!((along - GYRO_JUMP_MAX_ANGLE_DEG).abs() < 0.2, "{along}");
+    }
+
+    #[test]
+    fn a_gap_in_the_imu_log_is_crossed_on_interpolated_rates_and_doubted() {
+        // A body spun up about its z axis, w(t) = w0 + alpha t (0.1 rad/s,
+        // 0.2 rad/s^2), gyro samples at 100 Hz (each the mean rate over its
+        // interval) but none between 1 and 3 s; no accelerometer.
+        let (w0, alpha, dt) = (0.1, 0.2, 0.01);
+        let imu: Vec<ImuSample> = (0..=500)
+            .map(|k| k as f64 * dt)
+            .filter(|t| !(*t > 1.0 + 1e-9 && *t < 3.0 - 1e-9))
+            .map(|t| ImuSample {
+                t,
+                w_imu_rad_s: Vector3::z() * (w0 + alpha * (t - 0.5 * dt)),
+                f_imu_m_s2: None,
+            })
+            .collect();
+        let start = Turn::new().state(0.0);
+        let expected = |t: f64| {
+            UnitQuaternion::from_axis_angle(&Vector3::z_axis(), -EARTH_RATE_RAD_S * t)
+                * start.q_ecef_imu
+                * UnitQuaternion::from_axis_angle(&Vector3::z_axis(), w0 * t + 0.5 * alpha * t * t)
+        };
+        let sigma = 3f64.to_radians();
+        let gapped = InsErrors {
+            imu_gap_s: 5.0 * dt,
+            gap_rate_walk_rad_s_sqrt_s: sigma,
+            gyro_max_jump_rad_s: 10f64.to_radians(),
+            ..errors()
+        };
+        let run = |errors: InsErrors, times: &[f64]| {
+            let mut f = InsFilter::new(start, &init(), errors);
+            for &t in times {
+                f.propagate(t, &imu);
+            }
+            f
+        };
+        let att_err =
+            |f: &InsFilter, t: f64| rotation_vector(&(expected(t) * f.state.q_ecef_imu.inverse())).norm();
+        let att_var = |f: &InsFilter| f.covariance.fixed_view::<3, 3>(ATT, ATT).trace() / 3.0;
+        // Interpolated, the spin-up is followed through the gap but for the
+        // samples' half-interval lag (alpha dt / 2 over 2 s: 2e-3 rad); the
+        // sample after the gap taken as the mean rate through it, in one
+        // step (the gap not recognised), leaves it 2 alpha = 0.4 rad off and
+        // more (the second-order increment over 1.4 rad adds 0.1), and its
+        // 23 deg/s step from the sample before reads as a gyro jump.
+        let crossed = run(gapped, &[4.0]);
+        assert!(att_err(&crossed, 4.0) < 2.5e-3, "{}", att_err(&crossed, 4.0));
+        assert_eq!(crossed.gyro_jumps, 0);
+        let blind = run(InsErrors { imu_gap_s: 0.0, ..gapped }, &[4.0]);
+        assert!(att_err(&blind, 4.0) > 2.0 * alpha, "{}", att_err(&blind, 4.0));
+        assert_eq!(blind.gyro_jumps, 1);
+        // The attitude's variance per axis grows by sigma^2 tau^3 / 3, tau
+        // into the gap, whether the gap is crossed in one call or in frames.
+        let quiet = run(InsErrors { gap_rate_walk_rad_s_sqrt_s: 0.0, ..gapped }, &[1.8, 2.6, 4.0]);
+        for times in [&[1.8, 2.6, 4.0][..], &[4.0][..]] {
+            let f = run(gapped, times);
+            let added = att_var(&f) - att_var(&quiet);
+            let model = sigma * sigma * 8.0 / 3.0;
+            assert!((added / model - 1.0).abs() < 0.01, "{times:?}: {added} against {model}");
+            assert!((att_err(&f, 4.0) - att_err(&crossed, 4.0)).abs() < 1e-9);
+        }
+        let mid = run(gapped, &[2.0]);
+        let added =
+            att_var(&mid) - att_var(&run(InsErrors { gap_rate_walk_rad_s_sqrt_s: 0.0, ..gapped }, &[2.0]));
+        assert!((added / (sigma * sigma / 3.0) - 1.0).abs() < 0.01, "{added}");
+        // Up to IMU_GAP_MAX_ANGLE_DEG per axis; a fix in the gap shrinks
+        // it, and the gap grows it again.
+        let wild = InsErrors { gap_rate_walk_rad_s_sqrt_s: 1.0, ..gapped };
+        let sigma_deg = |f: &InsFilter| att_var(f).sqrt().to_degrees();
+        assert!((sigma_deg(&run(wild, &[4.0])) - IMU_GAP_MAX_ANGLE_DEG).abs() < 0.05);
+        let mut f = run(wild, &[2.0]);
+        assert!((sigma_deg(&f) - IMU_GAP_MAX_ANGLE_DEG).abs() < 0.05, "{}", sigma_deg(&f));
+        f.covariance.fixed_view_mut::<3, 3>(ATT, ATT).fill_diagonal(0.01f64.to_radians().powi(2));
+        f.propagate(2.5, &imu);
+        assert!((sigma_deg(&f) - IMU_GAP_MAX_ANGLE_DEG).abs() < 0.05, "{}", sigma_deg(&f));
     }
 
     #[test]

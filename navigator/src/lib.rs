@@ -117,6 +117,9 @@ impl RunOptions {
         if !(p.gyro_max_jump_deg_s.is_finite() && p.gyro_max_jump_deg_s >= 0.0) {
             return bad("--gyro-max-jump", "must be deg/s >= 0 (0: never doubted)");
         }
+        if !(p.imu_gap_doubt_deg_s_sqrt_s.is_finite() && p.imu_gap_doubt_deg_s_sqrt_s >= 0.0) {
+            return bad("--imu-gap-doubt", "must be deg/s/sqrt(s) >= 0 (0: none)");
+        }
         for (option, v) in [
             ("--init-velocity-sigma", p.init_velocity_sigma_m_s),
             ("--accel-bias", p.accel_bias_m_s2),
@@ -386,7 +389,7 @@ pub fn run_flight(
     if let Some(longest) = imu_gaps.iter().max_by(|a, b| (a.to_t - a.from_t).total_cmp(&(b.to_t - b.from_t)))
     {
         tracing::warn!(
-            "imu.csv: {} gap(s) without samples, the longest {:.3} s from t {:.3} s: a turn there is missed until frames that do not fix doubt the pose",
+            "imu.csv: {} gap(s) without samples, the longest {:.3} s from t {:.3} s: crossed on rates interpolated between the samples either side, the attitude doubted (--imu-gap-doubt)",
             imu_gaps.len(),
             longest.to_t - longest.from_t,
             longest.from_t

@@ -115,18 +115,24 @@ pub struct ImuGap {
     pub to_t: f64,
 }
 
-/// The stretches between consecutive samples longer than `factor` times the
-/// log's median interval: there the next sample's rate is taken as the mean
-/// over the whole stretch ([`for_each_segment`]), which it was not, so a
-/// turn during it is missed (the navigator's doubt after frames that do not
-/// fix is what recovers from it).
-pub fn imu_gaps(imu: &[ImuSample], factor: f64) -> Vec<ImuGap> {
+/// The interval between samples beyond which the log has a gap: `factor`
+/// times its median interval (`None` with fewer than two samples).
+pub fn gap_limit_s(imu: &[ImuSample], factor: f64) -> Option<f64> {
     let mut dts: Vec<f64> = imu.windows(2).map(|w| w[1].t - w[0].t).collect();
     if dts.is_empty() {
-        return Vec::new();
+        return None;
     }
-    dts.sort_by(f64::total_cmp);
-    let limit = factor * dts[dts.len() / 2];
+    let mid = dts.len() / 2;
+    let (_, median, _) = dts.select_nth_unstable_by(mid, f64::total_cmp);
+    Some(factor * *median)
+}
+
+/// The stretches between consecutive samples longer than `factor` times the
+/// log's median interval ([`gap_limit_s`]): the inertial filter crosses them
+/// on rates interpolated between the samples either side, its attitude
+/// doubted as it goes (`InsFilter::propagate`).
+pub fn imu_gaps(imu: &[ImuSample], factor: f64) -> Vec<ImuGap> {
+    let Some(limit) = gap_limit_s(imu, factor) else { return Vec::new() };
     imu.windows(2)
         .filter(|w| w[1].t - w[0].t > limit)
         .map(|w| ImuGap { from_t: w[0].t, to_t: w[1].t })

@@ -63,6 +63,8 @@ pub struct TrackAnchor {
     pub rate_ecef_rad_s: Vector3<f64>,
     pub velocity_ecef_m_s: Vector3<f64>,
     pub points: Vec<TrackPoint>,
+    /// The filter's [`InsFilter::gap_crossed_s`] then.
+    pub gap_crossed_s: f64,
 }
 
 impl TrackAnchor {
@@ -75,6 +77,7 @@ impl TrackAnchor {
             rate_ecef_rad_s: s.rate_ecef_rad_s,
             velocity_ecef_m_s: s.velocity_ecef_m_s,
             points,
+            gap_crossed_s: f.gap_crossed_s,
         }
     }
 }
@@ -147,7 +150,9 @@ pub fn track_update(
     params: &TrackParams,
 ) -> Option<TrackOutcome> {
     let dt = f.state.t - anchor.t;
-    if !(dt > 0.0 && dt <= params.max_interval_s) {
+    // Across a gap in the IMU log the turn in between is not the gyro's
+    // (its error is not the bias's and the angle random walk's).
+    if !(dt > 0.0 && dt <= params.max_interval_s) || f.gap_crossed_s != anchor.gap_crossed_s {
         return None;
     }
     let earlier: HashMap<i64, &TrackPoint> = anchor.points.iter().map(|p| (p.landmark, p)).collect();
@@ -305,6 +310,8 @@ mod tests {
             map_att_sigma_rad: 0.0,
             focal_walk_rel_sqrt_s: 0.0,
             gyro_max_jump_rad_s: 0.0,
+            imu_gap_s: 0.0,
+            gap_rate_walk_rad_s_sqrt_s: 0.0,
             principal_walk_px_sqrt_s: 0.0,
         };
         let mut truth = InsFilter::new(state(true_velocity), &init, errors);
@@ -386,6 +393,14 @@ mod tests {
         let dv = s.filter.state.velocity_ecef_m_s - s.true_velocity;
         let up = s.filter.state.position.to_geodetic().up_ecef();
         assert!((dv - up * up.dot(&dv)).norm() < 0.5, "{dv}");
+
+        // Across a gap in the IMU log (the filter crossed one since the
+        // earlier image), no update: the turn in between is not the gyro's.
+        let mut s = scene(40);
+        let before = s.filter.clone();
+        s.anchor.gap_crossed_s = s.filter.gap_crossed_s - 0.5;
+        assert!(update(&mut s).is_none());
+        assert_eq!(s.filter, before);
 
         // Four tracks: fewer than the five an update needs.
         let mut s = scene(40);

@@ -2,14 +2,17 @@
 # Sensor faults (issue #13: doubt it, report it, recover): a realistic flight
 # (run scripts/bench_realistic.sh first; default sierra-balloon-nadir, 30 km)
 # with its IMU changed, navigated by trn on the default database: a gyro
-# glitch (four samples over 20 ms turned about the IMU's x axis, DEG in all)
-# or a gap (no sample for SECONDS). Prints, per case, the fixes, the mean and
-# worst error of the fixes, the error at the last frame, and what the run
-# report says: gyro jumps doubted, frames doubted after a run of misses, IMU
-# gaps; results in OUT/faults/results.md.
-# Usage: scripts/bench_faults.sh [CASE ...]   (CASE: none, glitch:DEG@T0 or
-#   gap:SECONDS@T0; default: none glitch:1@10 glitch:5@10 glitch:10@10
-#   glitch:30@10 gap:1@10 gap:3@10 gap:10@10 gap:3@30)
+# glitch (four samples over 20 ms turned about the IMU's x axis, DEG in all),
+# an accelerometer shock (its x axis off by M m/s^2 for SECONDS) or a gap (no
+# sample for SECONDS). Prints, per case, the fixes, the mean and worst error
+# of the fixes, the error at the last frame, the farthest fix in its own
+# sigmas, and what the run report says: gyro and accelerometer jumps
+# doubted, frames doubted after a run of misses, IMU gaps; results in
+# OUT/faults/results.md.
+# Usage: scripts/bench_faults.sh [CASE ...]   (CASE: none, glitch:DEG@T0,
+#   shock:MxSECONDS@T0 or gap:SECONDS@T0; default: none glitch:1@10
+#   glitch:5@10 glitch:10@10 glitch:30@10 shock:500x0.02@10 shock:30x1@10
+#   shock:100x1@10 shock:20x5@10 gap:1@10 gap:3@10 gap:10@10 gap:3@30)
 # Environment: OUT=target/realistic; FLIGHT=another realistic flight's name;
 #   TRN=path of a trn binary (default: this checkout's, built); NAV_ARGS more
 #   trn navigate options.
@@ -25,7 +28,8 @@ if [ -z "${TRN:-}" ]; then cargo build --release --quiet --bin trn; fi
 trn=${TRN:-target/release/trn}
 read -r -a nav_args <<< "${NAV_ARGS:-}"
 cases=("$@")
-[ ${#cases[@]} -gt 0 ] || cases=(none glitch:1@10 glitch:5@10 glitch:10@10 glitch:30@10 gap:1@10 gap:3@10 gap:10@10 gap:3@30)
+[ ${#cases[@]} -gt 0 ] || cases=(none glitch:1@10 glitch:5@10 glitch:10@10 glitch:30@10 shock:500x0.02@10 shock:30x1@10
+  shock:100x1@10 shock:20x5@10 gap:1@10 gap:3@10 gap:10@10 gap:3@30)
 work="$OUT/faults"
 rm -rf "$work"; mkdir -p "$work"
 rows=()
@@ -43,7 +47,14 @@ rows = list(csv.reader(open(src)))
 head, body = rows[0], rows[1:]
 if case != "none":
     kind, rest = case.split(":")
-    size, t0 = (float(x) for x in rest.split("@"))
+    size, t0 = rest.split("@")
+    t0 = float(t0)
+    if kind == "shock":
+        force, seconds = (float(x) for x in size.split("x"))
+        for r in body:
+            if t0 < float(r[0]) <= t0 + seconds + 1e-9:
+                r[4] = repr(float(r[4]) + force)
+    size = float(size) if kind != "shock" else 0.0
     if kind == "glitch":
         rate = math.radians(size) / 0.02
         for r in body:
@@ -51,8 +62,8 @@ if case != "none":
                 r[1] = repr(float(r[1]) + rate)
     elif kind == "gap":
         body = [r for r in body if not (t0 <= float(r[0]) < t0 + size)]
-    else:
-        sys.exit(f"unknown case {case!r}: none, glitch:DEG@T0 or gap:SECONDS@T0")
+    elif kind != "shock":
+        sys.exit(f"unknown case {case!r}: none, glitch:DEG@T0, shock:MxSECONDS@T0 or gap:SECONDS@T0")
 csv.writer(open(dst, "w"), lineterminator="\n").writerows([head] + body)
 PY
   "$trn" navigate --db "$db" --flight "$f" --out "$d/poses.csv" "${nav_args[@]}" > "$d/report.json" 2> "$d/log.txt"
@@ -66,14 +77,16 @@ fixes = [r['error']['pos_m'] for r in fr if r['status'] == 'fix']
 mean = sum(fixes) / len(fixes) if fixes else float('nan')
 worst = max(fixes) if fixes else float('nan')
 gaps = len(report.get('imu_gaps', []))
-print(f"| {sys.argv[3]} | {len(fixes)} of {len(fr)} | {mean:.1f} | {worst:.1f} | {fr[-1]['error']['pos_m']:.1f} | {report.get('gyro_jumps', 'n/a')} | {report.get('doubted_frames', 'n/a')} | {gaps} |")
+farthest = e.get('consistency', {}).get('max_sigma_distance')
+farthest = f"{farthest:.1f}" if farthest is not None else "n/a"
+print(f"| {sys.argv[3]} | {len(fixes)} of {len(fr)} | {mean:.1f} | {worst:.1f} | {fr[-1]['error']['pos_m']:.1f} | {farthest} | {report.get('gyro_jumps', 'n/a')} | {report.get('accel_jumps', 'n/a')} | {report.get('doubted_frames', 'n/a')} | {gaps} |")
 PY
 )")
 done
 {
   echo "Sensor faults: $name, default database"
   echo
-  echo "| case | fixes | mean m | worst m | last frame's error m | gyro jumps doubted | frames doubted | IMU gaps reported |"
-  echo "|---|---:|---:|---:|---:|---:|---:|---:|"
+  echo "| case | fixes | mean m | worst m | last frame's error m | farthest fix (sigma) | gyro jumps doubted | accelerometer jumps doubted | frames doubted | IMU gaps reported |"
+  echo "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
   printf '%s\n' "${rows[@]}"
 } | tee "$work/results.md"

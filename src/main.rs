@@ -325,6 +325,12 @@ struct NavigateArgs {
     /// beyond the rate before widens the attitude's uncertainty.
     #[arg(long, default_value_t = 10.0)]
     gyro_max_jump: f64,
+    /// A specific force that jumps by more than this from one accelerometer
+    /// sample to the next (m/s^2; 0: never) is doubted by the inertial
+    /// filter: the velocity it adds beyond the force before (for 2 s at most)
+    /// widens the velocity's uncertainty.
+    #[arg(long, default_value_t = 10.0)]
+    accel_max_jump: f64,
     /// Through a gap in imu.csv (an interval over 5 times its median), the
     /// doubt on the rate interpolated between the samples either side
     /// (deg/s/sqrt(s), a random walk; 0: none): the attitude's sigma grows as
@@ -725,6 +731,7 @@ fn nav_params(a: &NavigateArgs) -> trn_navigator::NavParams {
     params.gyro_bias_deg_s = a.gyro_bias / 3600.0;
     params.gyro_max_jump_deg_s = a.gyro_max_jump;
     params.imu_gap_doubt_deg_s_sqrt_s = a.imu_gap_doubt;
+    params.accel_max_jump_m_s2 = a.accel_max_jump;
     params.calibration = (!a.no_self_calibration).then(|| trn_navigator::calibration::CalibrationParams {
         focal_sigma_rel: a.focal_sigma / 100.0,
         principal_sigma_px: a.principal_point_sigma,
@@ -809,6 +816,13 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
             "{} gyro rate jump(s) beyond {} deg/s from one sample to the next: the angle each turned was doubted (--gyro-max-jump)",
             report.gyro_jumps,
             a.gyro_max_jump
+        );
+    }
+    if report.accel_jumps > 0 {
+        tracing::warn!(
+            "{} accelerometer jump(s) beyond {} m/s^2 from one sample to the next: the velocity each added was doubted (--accel-max-jump)",
+            report.accel_jumps,
+            a.accel_max_jump
         );
     }
     if let Some(first) = report.skipped_images.first() {

@@ -511,6 +511,7 @@ fn bad_inputs_are_named() {
         ("--gyro-bias", "nan"),
         ("--gyro-max-jump", "nan"),
         ("--imu-gap-doubt", "nan"),
+        ("--accel-max-jump", "inf"),
         ("--matches-dir", file.to_str().unwrap()),
         ("--shading-weight", "1.5"),
         ("--sun", "250"),
@@ -820,7 +821,7 @@ fn edit_imu(flight: &Path, mut edit: impl FnMut(&mut [f64]) -> bool) {
 /// landmarks for the rest of the flight (the full 60 s flight turned 5 deg:
 /// 21 of 121 frames fixed, all before it; `scripts/bench_faults.sh`).
 #[test]
-fn recovers_from_a_gyro_glitch_an_imu_gap_and_bad_images() {
+fn recovers_from_a_gyro_glitch_an_accelerometer_shock_an_imu_gap_and_bad_images() {
     let dir = tempfile::tempdir().unwrap();
     let (db, flight) = realistic_flight(dir.path(), "sierra-balloon-nadir", 300.0, "10");
     // Navigates a copy of the flight changed by `change`: (report, rows, worst fix m).
@@ -864,6 +865,28 @@ fn recovers_from_a_gyro_glitch_an_imu_gap_and_bad_images() {
     assert!(report["doubted_frames"].as_u64().unwrap() >= 1, "{report}");
     assert!(r.iter().rev().take(4).all(|x| x.1 == "fix"), "fixed again by the end: {r:?}");
     assert!(worst < 250.0, "no fix a navigator should not trust: {worst:.1} m");
+
+    // The accelerometer 100 m/s^2 off for 1 s (a shock that saturated it):
+    // the velocity it adds is doubted, so the fixes after correct it.
+    let shock = |f: &Path| {
+        edit_imu(f, |v| {
+            if v[0] > 2.0 && v[0] <= 3.0 + 1e-9 {
+                v[4] += 100.0;
+            }
+            true
+        })
+    };
+    let (report, r, worst, log) = run_changed("shock", &shock, &[]);
+    assert_eq!(report["accel_jumps"], 1, "{report}");
+    assert!(log.contains("1 accelerometer jump(s)"), "{log}");
+    assert!(r.iter().all(|x| x.1 == "fix"), "{r:?}");
+    // Its worst fix as without the shock (93.5 m when written); not
+    // doubted (`--accel-max-jump 0`), the velocity 100 m/s off is trusted
+    // and the fixes drift (127.9 m by the flight's end).
+    assert!(worst < 110.0, "{worst:.1} m");
+    let (report, _, worst_off, _) = run_changed("shock-unwatched", &shock, &["--accel-max-jump", "0"]);
+    assert_eq!(report["accel_jumps"], 0, "{report}");
+    assert!(worst_off > worst + 20.0, "{worst_off:.1} m not doubted, {worst:.1} m doubted");
 
     let gap = |f: &Path| edit_imu(f, |v| !(v[0] > 2.0 && v[0] < 4.0));
     let (report, r, worst, log) = run_changed("gap", &gap, &[]);

@@ -126,6 +126,12 @@ pub struct InsErrors {
     /// turns beyond that rate is doubted: added to the attitude's sigma
     /// about the jump's axis (see [`InsFilter::propagate`]).
     pub gyro_max_jump_rad_s: f64,
+    /// A specific force that differs from the sample before by more than
+    /// this (m/s^2; 0: never) starts a jump of the accelerometer: until the
+    /// force comes back within it of the force before (or for
+    /// [`ACCEL_JUMP_MAX_S`]), the velocity it adds beyond that force is
+    /// doubted: added to the velocity's sigma along the jump's axis.
+    pub accel_max_jump_m_s2: f64,
     /// An interval between two IMU samples longer than this (s; 0: none)
     /// is a *gap*: samples were lost. Through it the rate and the specific
     /// force are interpolated between the samples on either side, the
@@ -161,15 +167,74 @@ pub const GYRO_JUMP_MAX_S: f64 = 0.5;
 /// 114 and 116).
 pub const GYRO_JUMP_MAX_ANGLE_DEG: f64 = 10.0;
 
-/// A gyro jump being doubted ([`InsErrors::gyro_max_jump_rad_s`]).
-#[derive(Clone, Copy, Debug, PartialEq)]
-struct GyroJump {
-    /// The rate before it (rad/s, IMU frame).
-    before: Vector3<f64>,
-    /// The angle turned beyond that rate so far (rad).
-    angle_rad: f64,
-    /// Its duration so far (s).
-    age_s: f64,
+/// How long an accelerometer jump is doubted at most (s): a force that
+/// stays away from the one before is a thrust the platform felt (an
+/// engine's start or cut-off), and the fixes after it find the velocity.
+/// Longer than the gyro's: a saturated accelerometer (a shock) reads wrong
+/// for as long as the shock lasts.
+pub const ACCEL_JUMP_MAX_S: f64 = 2.0;
+
+/// The most an accelerometer jump is doubted (m/s, 1 sigma along its axis).
+pub const ACCEL_JUMP_MAX_M_S: f64 = 100.0;
+
+/// A sensor's jumps from one sample to the next (the gyro's rate, the
+/// accelerometer's specific force; IMU frame): a value that differs from
+/// the sample before by more than a limit starts a jump, which lasts until
+/// the values come back within the limit of the one before it, or for a
+/// longest time; meanwhile the integral of the values beyond the one before
+/// (an angle, a velocity) is what the filter doubts.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+struct JumpWatch {
+    /// The last sample's value.
+    last: Option<Vector3<f64>>,
+    /// The jump being doubted: the value before it, the integral beyond it
+    /// so far (its norm, capped), and its duration so far (s).
+    jump: Option<(Vector3<f64>, f64, f64)>,
+    /// Jumps seen so far.
+    count: usize,
+}
+
+impl JumpWatch {
+    /// The sample `x` over `dt` of its interval (each sample is visited
+    /// once per segment of its interval; the jump is judged once per sample,
+    /// when the value changes). Returns the value beyond the one before the
+    /// jump (its axis) and the variance to add along it, while a jump lasts.
+    fn watch(
+        &mut self,
+        x: &Vector3<f64>,
+        dt: f64,
+        limit: f64,
+        max_s: f64,
+        cap: f64,
+    ) -> Option<(Vector3<f64>, f64)> {
+        if self.last != Some(*x) {
+            if let (None, Some(before)) = (self.jump, self.last) {
+                if (x - before).norm() > limit {
+                    self.jump = Some((before, 0.0, 0.0));
+                    self.count += 1;
+                }
+            }
+            if let Some((before, _, age)) = self.jump {
+                if (x - before).norm() <= limit || age >= max_s {
+                    self.jump = None;
+                }
+            }
+            self.last = Some(*x);
+        }
+        let (before, size, age) = self.jump.as_mut()?;
+        let beyond = x - *before;
+        let grown = (*size + beyond.norm() * dt).min(cap);
+        let added = grown * grown - *size * *size;
+        *size = grown;
+        *age += dt;
+        Some((beyond, added))
+    }
+
+    /// Forgets the samples before (after a gap in the log).
+    fn restart(&mut self, x: Option<Vector3<f64>>) {
+        self.jump = None;
+        self.last = x;
+    }
 }
 
 /// Initial uncertainty (1 sigma per axis).
@@ -225,12 +290,10 @@ pub struct InsFilter {
     /// and v: the true one is that camera's plus this); taken with
     /// [`Self::take_principal_error`].
     pub principal_error_px: Vector2<f64>,
-    /// The last gyro sample's rate (rad/s, IMU frame, bias included).
-    last_gyro_rad_s: Option<Vector3<f64>>,
-    /// A gyro jump being doubted.
-    jump: Option<GyroJump>,
-    /// Gyro jumps doubted so far.
-    pub gyro_jumps: usize,
+    /// The gyro's jumps (rad/s, IMU frame, bias included).
+    gyro_watch: JumpWatch,
+    /// The accelerometer's jumps (m/s^2, IMU frame, bias included).
+    accel_watch: JumpWatch,
     /// The gap in the IMU log being crossed: its first sample's time.
     gap: Option<f64>,
     /// Time crossed in gaps of the IMU log so far (s): between two states
@@ -294,9 +357,8 @@ impl InsFilter {
             errors,
             focal_error_rel: 0.0,
             principal_error_px: Vector2::zeros(),
-            last_gyro_rad_s: None,
-            jump: None,
-            gyro_jumps: 0,
+            gyro_watch: JumpWatch::default(),
+            accel_watch: JumpWatch::default(),
             gap: None,
             gap_crossed_s: 0.0,
         }
@@ -328,6 +390,9 @@ impl InsFilter {
             }
             self.gap = None;
             self.watch_gyro(&imu[k].w_imu_rad_s, b - a, &mut acc);
+            if let Some(f) = &imu[k].f_imu_m_s2 {
+                self.watch_accel(f, b - a, &mut acc);
+            }
             let force = match (k.checked_sub(1).and_then(|j| imu[j].f_imu_m_s2), imu[k].f_imu_m_s2) {
                 (Some(f0), Some(f1)) if end > begin => {
                     let s = ((0.5 * (a + b) - begin) / (end - begin)).clamp(0.0, 1.0);
@@ -354,8 +419,8 @@ impl InsFilter {
     fn cross_gap(&mut self, a: f64, b: f64, before: &ImuSample, after: &ImuSample, acc: &mut Accumulated) {
         let (begin, end) = (before.t, after.t);
         self.gap = Some(begin);
-        self.jump = None;
-        self.last_gyro_rad_s = Some(after.w_imu_rad_s);
+        self.gyro_watch.restart(Some(after.w_imu_rad_s));
+        self.accel_watch.restart(after.f_imu_m_s2);
         self.gap_crossed_s += b - a;
         let walk = self.errors.gap_rate_walk_rad_s_sqrt_s;
         let cap = IMU_GAP_MAX_ANGLE_DEG.to_radians().powi(2);
@@ -391,41 +456,58 @@ impl InsFilter {
     /// rate before, so the next search widens to where the landmarks are if
     /// it was wrong (an unreported 2-4 deg turn otherwise leaves the search
     /// sized for a small fraction of a degree, and chance matches around the
-    /// wrong prediction can then agree). A sample's part `dt` of its
-    /// interval is visited once per segment; the jump is judged once per
-    /// sample, when it changes.
+    /// wrong prediction can then agree).
     fn watch_gyro(&mut self, w: &Vector3<f64>, dt: f64, acc: &mut Accumulated) {
         let limit = self.errors.gyro_max_jump_rad_s;
         if !(limit > 0.0) {
             return;
         }
-        let new_sample = self.last_gyro_rad_s != Some(*w);
-        if new_sample {
-            if let (None, Some(before)) = (self.jump, self.last_gyro_rad_s) {
-                if (w - before).norm() > limit {
-                    self.jump = Some(GyroJump { before, angle_rad: 0.0, age_s: 0.0 });
-                    self.gyro_jumps += 1;
-                }
-            }
-            if let Some(j) = self.jump {
-                if (w - j.before).norm() <= limit || j.age_s >= GYRO_JUMP_MAX_S {
-                    self.jump = None;
-                }
-            }
-            self.last_gyro_rad_s = Some(*w);
+        let cap = GYRO_JUMP_MAX_ANGLE_DEG.to_radians();
+        if let Some((beyond, added)) = self.gyro_watch.watch(w, dt, limit, GYRO_JUMP_MAX_S, cap) {
+            self.doubt_along(ATT, &beyond, added, acc);
         }
-        let Some(j) = &mut self.jump else { return };
-        let beyond = w - j.before;
-        let angle = (j.angle_rad + beyond.norm() * dt).min(GYRO_JUMP_MAX_ANGLE_DEG.to_radians());
-        let added = angle * angle - j.angle_rad * j.angle_rad;
-        j.angle_rad = angle;
-        j.age_s += dt;
-        // About the jump's axis (in ECEF, as the attitude error is).
+    }
+
+    /// The accelerometer's plausibility
+    /// ([`InsErrors::accel_max_jump_m_s2`]): a specific force that jumps
+    /// from the sample before (a shock that saturates it, a glitch) is
+    /// integrated as measured, and the velocity it adds beyond the force
+    /// before is doubted, so the fixes after it can correct the velocity (a
+    /// 1 s glitch of 100 m/s^2 otherwise left the velocity 100 m/s off with
+    /// a sigma of centimetres per second: the 30 km nadir balloon's fixes
+    /// then drifted 360 m from the truth, 6.5 sigmas, the images' shift
+    /// taken for the map's tilt).
+    fn watch_accel(&mut self, f: &Vector3<f64>, dt: f64, acc: &mut Accumulated) {
+        let limit = self.errors.accel_max_jump_m_s2;
+        if !(limit > 0.0) {
+            return;
+        }
+        if let Some((beyond, added)) =
+            self.accel_watch.watch(f, dt, limit, ACCEL_JUMP_MAX_S, ACCEL_JUMP_MAX_M_S)
+        {
+            self.doubt_along(VEL, &beyond, added, acc);
+        }
+    }
+
+    /// Adds `added` to the variance of the 3-vector state at `at` along
+    /// the IMU-frame direction `beyond` (in ECEF, as those errors are).
+    fn doubt_along(&mut self, at: usize, beyond: &Vector3<f64>, added: f64, acc: &mut Accumulated) {
         if let Some(axis) = (self.state.q_ecef_imu * beyond).try_normalize(1e-12) {
             self.flush(acc);
-            let mut b = self.covariance.fixed_view_mut::<3, 3>(ATT, ATT);
+            let mut b = self.covariance.fixed_view_mut::<3, 3>(at, at);
             b += axis * axis.transpose() * added;
         }
+    }
+
+    /// Gyro jumps doubted so far ([`InsErrors::gyro_max_jump_rad_s`]).
+    pub fn gyro_jumps(&self) -> usize {
+        self.gyro_watch.count
+    }
+
+    /// Accelerometer jumps doubted so far
+    /// ([`InsErrors::accel_max_jump_m_s2`]).
+    pub fn accel_jumps(&self) -> usize {
+        self.accel_watch.count
     }
 
     /// One mechanization step of `dt` seconds with the gyro's mean rate
@@ -1182,6 +1264,7 @@ mod tests {
             map_att_sigma_rad: 0.0,
             focal_walk_rel_sqrt_s: 0.0,
             gyro_max_jump_rad_s: 0.0,
+            accel_max_jump_m_s2: 0.0,
             imu_gap_s: 0.0,
             gap_rate_walk_rad_s_sqrt_s: 0.0,
             principal_walk_px_sqrt_s: 0.0,
@@ -1254,9 +1337,9 @@ mod tests {
         };
         // The turn's own rate changes (1e-4 deg/s a sample) are no jump.
         let smooth = run(watching, &imu, 9.9);
-        assert_eq!(smooth.gyro_jumps, 0);
+        assert_eq!(smooth.gyro_jumps(), 0);
         let f = run(watching, &imu, 12.0);
-        assert_eq!(f.gyro_jumps, 1);
+        assert_eq!(f.gyro_jumps(), 1);
         let err = error9(&f.state, &turn.at(12.0)).fixed_rows::<3>(0).into_owned();
         assert!((err.norm().to_degrees() - 3.0).abs() < 0.05, "{err}");
         // Doubted by the angle turned beyond the rate before, about the
@@ -1273,7 +1356,7 @@ mod tests {
         // (but for the jump's own turn of the dynamics).
         let off = run(errors(), &imu, 12.0);
         let quiet = run(errors(), &clean, 12.0);
-        assert_eq!(off.gyro_jumps, 0);
+        assert_eq!(off.gyro_jumps(), 0);
         let att_var = |f: &InsFilter| f.covariance.fixed_view::<3, 3>(ATT, ATT).trace();
         assert!(
             (att_var(&off) / att_var(&quiet) - 1.0).abs() < 0.01,
@@ -1289,6 +1372,61 @@ mod tests {
         let p = f.covariance.fixed_view::<3, 3>(ATT, ATT);
         let along = (axis.transpose() * p * axis)[0].sqrt().to_degrees();
         assert!((along - GYRO_JUMP_MAX_ANGLE_DEG).abs() < 0.2, "{along}");
+    }
+
+    #[test]
+    fn an_accelerometer_jump_is_doubted_along_its_axis() {
+        // The 2 km turn (2 g sideways, noise-free samples at 200 Hz) with
+        // its accelerometer 100 m/s^2 off along the IMU's x axis for 1 s
+        // from 10 s (a shock that saturated it): 100 m/s of velocity the
+        // body did not gain.
+        let turn = Turn::new();
+        let (clean, _, _) = turn.imu(200.0, 21.0, None);
+        let mut imu = clean.clone();
+        let glitch = 100.0;
+        for s in imu.iter_mut().filter(|s| s.t > 10.0 && s.t < 11.0 + 1e-9) {
+            s.f_imu_m_s2 = s.f_imu_m_s2.map(|f| f + Vector3::x() * glitch);
+        }
+        let watching = InsErrors { accel_max_jump_m_s2: 10.0, ..errors() };
+        let run = |errors: InsErrors, imu: &[ImuSample], t: f64| {
+            let mut f = InsFilter::new(turn.state(0.0), &init(), errors);
+            f.propagate(t, imu);
+            f
+        };
+        // The turn's own force (constant in the body) is no jump.
+        assert_eq!(run(watching, &clean, 21.0).accel_jumps(), 0);
+        let f = run(watching, &imu, 12.0);
+        assert_eq!(f.accel_jumps(), 1);
+        let err = error9(&f.state, &turn.at(12.0)).fixed_rows::<3>(6).into_owned();
+        assert!((err.norm() - glitch).abs() < 3.0, "{err}");
+        // Doubted by the velocity it added beyond the force before, along
+        // its axis (the IMU's x in ECEF, which turns 5.7 deg in that second).
+        let p = f.covariance.fixed_view::<3, 3>(VEL, VEL).into_owned();
+        let dir = err.normalize();
+        let along = (dir.transpose() * p * dir)[0].sqrt();
+        assert!(along > 0.9 * glitch && along < 1.1 * glitch, "along {along} m/s");
+        assert!(p.trace() - along * along < 25.0, "across {} m/s", (p.trace() - along * along).sqrt());
+        // Off (0), the velocity is as sure as without the glitch, 100 m/s
+        // off: tens of its sigmas.
+        let off = run(errors(), &imu, 12.0);
+        let quiet = run(errors(), &clean, 12.0);
+        assert_eq!(off.accel_jumps(), 0);
+        let vel_var = |f: &InsFilter| f.covariance.fixed_view::<3, 3>(VEL, VEL).trace();
+        assert!(
+            (vel_var(&off) / vel_var(&quiet) - 1.0).abs() < 0.05,
+            "{} {}",
+            vel_var(&off),
+            vel_var(&quiet)
+        );
+        assert!(vel_var(&off).sqrt() < glitch / 20.0, "{}", vel_var(&off).sqrt());
+        // 500 m/s^2 for 1 s is doubted by ACCEL_JUMP_MAX_M_S at most.
+        for s in imu.iter_mut().filter(|s| s.t > 10.0 && s.t < 11.0 + 1e-9) {
+            s.f_imu_m_s2 = s.f_imu_m_s2.map(|f| f + Vector3::x() * 400.0);
+        }
+        let f = run(watching, &imu, 12.0);
+        let p = f.covariance.fixed_view::<3, 3>(VEL, VEL);
+        let doubt = p.symmetric_eigenvalues().max().sqrt();
+        assert!((doubt - ACCEL_JUMP_MAX_M_S).abs() < 1.0, "{doubt}");
     }
 
     #[test]
@@ -1337,10 +1475,10 @@ mod tests {
         // 23 deg/s step from the sample before reads as a gyro jump.
         let crossed = run(gapped, &[4.0]);
         assert!(att_err(&crossed, 4.0) < 2.5e-3, "{}", att_err(&crossed, 4.0));
-        assert_eq!(crossed.gyro_jumps, 0);
+        assert_eq!(crossed.gyro_jumps(), 0);
         let blind = run(InsErrors { imu_gap_s: 0.0, ..gapped }, &[4.0]);
         assert!(att_err(&blind, 4.0) > 2.0 * alpha, "{}", att_err(&blind, 4.0));
-        assert_eq!(blind.gyro_jumps, 1);
+        assert_eq!(blind.gyro_jumps(), 1);
         // The attitude's variance per axis grows by sigma^2 tau^3 / 3, tau
         // into the gap, whether the gap is crossed in one call or in frames.
         let quiet = run(InsErrors { gap_rate_walk_rad_s_sqrt_s: 0.0, ..gapped }, &[1.8, 2.6, 4.0]);

@@ -117,6 +117,9 @@ impl RunOptions {
         if !(p.gyro_max_jump_deg_s.is_finite() && p.gyro_max_jump_deg_s >= 0.0) {
             return bad("--gyro-max-jump", "must be deg/s >= 0 (0: never doubted)");
         }
+        if !(p.accel_max_jump_m_s2.is_finite() && p.accel_max_jump_m_s2 >= 0.0) {
+            return bad("--accel-max-jump", "must be m/s^2 >= 0 (0: never doubted)");
+        }
         if !(p.imu_gap_doubt_deg_s_sqrt_s.is_finite() && p.imu_gap_doubt_deg_s_sqrt_s >= 0.0) {
             return bad("--imu-gap-doubt", "must be deg/s/sqrt(s) >= 0 (0: none)");
         }
@@ -189,6 +192,8 @@ pub struct RunReport {
     pub imu_gaps: Vec<propagate::ImuGap>,
     /// Gyro rate jumps the inertial filter doubted (`--gyro-max-jump`).
     pub gyro_jumps: usize,
+    /// Accelerometer jumps the inertial filter doubted (`--accel-max-jump`).
+    pub accel_jumps: usize,
     /// The camera's self-calibration at the end (`None`: off).
     pub calibration: Option<CalibrationReport>,
     /// The camera-IMU time offset the inertial filter ends with (`None`:
@@ -486,7 +491,8 @@ pub fn run_flight(
         doubted_frames: nav.doubted_frames(),
         skipped_images: skipped,
         imu_gaps,
-        gyro_jumps: nav.inertial().map_or(0, |f| f.gyro_jumps),
+        gyro_jumps: nav.inertial().map_or(0, |f| f.gyro_jumps()),
+        accel_jumps: nav.inertial().map_or(0, |f| f.accel_jumps()),
         calibration: nav.calibration().map(CalibrationReport::of),
         time_offset: nav.inertial().map(|f| {
             let (offset, sigma) = f.time_offset();

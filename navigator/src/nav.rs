@@ -121,6 +121,10 @@ pub struct NavParams {
     /// `sigma sqrt(tau^3 / 3)` `tau` seconds into the gap
     /// ([`crate::ins::InsErrors::gap_rate_walk_rad_s_sqrt_s`]).
     pub imu_gap_doubt_deg_s_sqrt_s: f64,
+    /// A specific force jump from one accelerometer sample to the next
+    /// beyond this (m/s^2; 0: none) is doubted by the inertial filter
+    /// ([`crate::ins::InsErrors::accel_max_jump_m_s2`]).
+    pub accel_max_jump_m_s2: f64,
     /// Velocity uncertainty between fixes (m/s) in [`FilterMode::Fixes`].
     pub velocity_sigma_m_s: f64,
     /// The inertial filter's initial velocity uncertainty (m/s; the initial
@@ -225,6 +229,7 @@ impl Default for NavParams {
             gyro_arw_deg_sqrt_s: 0.3 / 60.0,
             gyro_max_jump_deg_s: 10.0,
             imu_gap_doubt_deg_s_sqrt_s: 3.0,
+            accel_max_jump_m_s2: 10.0,
             gyro_bias_walk_deg_s_sqrt_s: 0.01 / 3600.0,
             velocity_sigma_m_s: 20.0,
             init_velocity_sigma_m_s: 300.0,
@@ -792,6 +797,7 @@ impl<'a> Navigator<'a> {
                     focal_walk_rel_sqrt_s: focal_prior.map_or(0.0, |c| c.focal_walk_rel_sqrt_s),
                     principal_walk_px_sqrt_s: principal_prior.map_or(0.0, |c| c.principal_walk_px_sqrt_s),
                     gyro_max_jump_rad_s: deg_s(params.gyro_max_jump_deg_s),
+                    accel_max_jump_m_s2: params.accel_max_jump_m_s2,
                     imu_gap_s: crate::propagate::gap_limit_s(imu, crate::IMU_GAP_FACTOR).unwrap_or(0.0),
                     gap_rate_walk_rad_s_sqrt_s: deg_s(params.imu_gap_doubt_deg_s_sqrt_s),
                 },
@@ -3030,6 +3036,7 @@ mod tests {
             map_att_sigma_rad: 0.0,
             focal_walk_rel_sqrt_s: 0.0,
             gyro_max_jump_rad_s: 0.0,
+            accel_max_jump_m_s2: 0.0,
             imu_gap_s: 0.0,
             gap_rate_walk_rad_s_sqrt_s: 0.0,
             principal_walk_px_sqrt_s: 0.0,

@@ -310,6 +310,7 @@ mod tests {
             map_att_sigma_rad: 0.0,
             focal_walk_rel_sqrt_s: 0.0,
             gyro_max_jump_rad_s: 0.0,
+            accel_max_jump_m_s2: 0.0,
             imu_gap_s: 0.0,
             gap_rate_walk_rad_s_sqrt_s: 0.0,
             principal_walk_px_sqrt_s: 0.0,

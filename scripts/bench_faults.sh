@@ -7,7 +7,8 @@
 # sample for SECONDS). Prints, per case, the fixes, the mean and worst error
 # of the fixes, the error at the last frame, the farthest fix in its own
 # sigmas, and what the run report says: gyro and accelerometer jumps
-# doubted, frames doubted after a run of misses, IMU gaps; results in
+# doubted, map offsets restarted, frames doubted after a run of misses, IMU
+# gaps; results in
 # OUT/faults/results.md.
 # Usage: scripts/bench_faults.sh [CASE ...]   (CASE: none, glitch:DEG@T0,
 #   shock:MxSECONDS@T0 or gap:SECONDS@T0; default: none glitch:1@10
@@ -79,14 +80,14 @@ worst = max(fixes) if fixes else float('nan')
 gaps = len(report.get('imu_gaps', []))
 farthest = e.get('consistency', {}).get('max_sigma_distance')
 farthest = f"{farthest:.1f}" if farthest is not None else "n/a"
-print(f"| {sys.argv[3]} | {len(fixes)} of {len(fr)} | {mean:.1f} | {worst:.1f} | {fr[-1]['error']['pos_m']:.1f} | {farthest} | {report.get('gyro_jumps', 'n/a')} | {report.get('accel_jumps', 'n/a')} | {report.get('doubted_frames', 'n/a')} | {gaps} |")
+print(f"| {sys.argv[3]} | {len(fixes)} of {len(fr)} | {mean:.1f} | {worst:.1f} | {fr[-1]['error']['pos_m']:.1f} | {farthest} | {report.get('gyro_jumps', 'n/a')} | {report.get('accel_jumps', 'n/a')} | {report.get('map_doubts', 'n/a')} | {report.get('doubted_frames', 'n/a')} | {gaps} |")
 PY
 )")
 done
 {
   echo "Sensor faults: $name, default database"
   echo
-  echo "| case | fixes | mean m | worst m | last frame's error m | farthest fix (sigma) | gyro jumps doubted | accelerometer jumps doubted | frames doubted | IMU gaps reported |"
-  echo "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+  echo "| case | fixes | mean m | worst m | last frame's error m | farthest fix (sigma) | gyro jumps doubted | accelerometer jumps doubted | map offsets restarted | frames doubted | IMU gaps reported |"
+  echo "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
   printf '%s\n' "${rows[@]}"
 } | tee "$work/results.md"

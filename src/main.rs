@@ -818,6 +818,12 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
             a.gyro_max_jump
         );
     }
+    if report.map_doubts > 0 {
+        tracing::warn!(
+            "{} fix(es) found the map offset beyond its prior: the images were being explained by a database error, most likely a velocity gone wrong; each restarted it and doubted the pose",
+            report.map_doubts
+        );
+    }
     if report.accel_jumps > 0 {
         tracing::warn!(
             "{} accelerometer jump(s) beyond {} m/s^2 from one sample to the next: the velocity each added was doubted (--accel-max-jump)",

@@ -909,6 +909,45 @@ impl InsFilter {
         (self.errors.map_sigma_m, self.errors.map_att_sigma_rad)
     }
 
+    /// How far the map offset's estimate lies in its own prior (the
+    /// stationary 1-sigmas of [`InsErrors::map_sigma_m`] and
+    /// [`InsErrors::map_att_sigma_rad`]): the sum of its six parts' squares
+    /// in those sigmas (chi-square with up to 6 degrees of freedom where the
+    /// database's errors are what the model says). Large, the images are
+    /// being explained by a map error no database of the model has: the
+    /// inertial state is more likely wrong.
+    pub fn map_offset_distance(&self) -> f64 {
+        let (sm, sa) = self.map_sigmas();
+        let part =
+            |v: &Vector3<f64>, sigma: f64| if sigma > 0.0 { v.norm_squared() / (sigma * sigma) } else { 0.0 };
+        part(&self.state.map_offset_ecef_m, sm) + part(&self.state.map_offset_att_rad, sa)
+    }
+
+    /// Restarts the map offset when its estimate is not to be believed
+    /// ([`Self::map_offset_distance`]): the pose the images see is kept (the
+    /// offset moved into the position and attitude), the offset starts
+    /// again at zero with its prior, uncorrelated, the position, velocity
+    /// and attitude sigmas are scaled by `factor` (correlations kept), and
+    /// the velocity's raised to `velocity_sigma_m_s` per axis at least, so
+    /// the next fixes correct the state that drifted.
+    pub fn restart_map_offset(&mut self, factor: f64, velocity_sigma_m_s: f64) {
+        let s = &mut self.state;
+        s.position = Ecef(s.position.0 + s.map_offset_ecef_m);
+        s.q_ecef_imu = UnitQuaternion::from_scaled_axis(s.map_offset_att_rad) * s.q_ecef_imu;
+        s.map_offset_ecef_m = Vector3::zeros();
+        s.map_offset_att_rad = Vector3::zeros();
+        let (sm, sa) = self.map_sigmas();
+        uncorrelate(&mut self.covariance, MAP..MAP + 3);
+        uncorrelate(&mut self.covariance, MAP_ATT..MAP_ATT + 3);
+        block(&mut self.covariance, MAP, sm);
+        block(&mut self.covariance, MAP_ATT, sa);
+        self.inflate(factor);
+        let worst = (VEL..VEL + 3).map(|i| self.covariance[(i, i)]).fold(0.0, f64::max).sqrt();
+        if worst < velocity_sigma_m_s && worst > 0.0 {
+            self.scale_sigmas(VEL..VEL + 3, velocity_sigma_m_s / worst);
+        }
+    }
+
     /// Resizes the map offset to new 1-sigmas: its process noise from now
     /// on and, with `covariance`, its covariance by the same ratio
     /// (correlations kept; a part that was not modelled starts uncorrelated
@@ -1993,6 +2032,36 @@ mod tests {
     /// [`errors`] with the navigator's map offset: 40 m, 0.1 deg, 10 s.
     fn errors_with_map_offset() -> InsErrors {
         InsErrors { map_sigma_m: 40.0, map_att_sigma_rad: 0.1f64.to_radians(), map_tau_s: 10.0, ..errors() }
+    }
+
+    #[test]
+    fn a_map_offset_beyond_its_prior_restarts_with_the_pose_the_images_see() {
+        let turn = Turn::new();
+        let mut f = InsFilter::new(turn.state(0.0), &init(), errors_with_map_offset());
+        let q = UnitQuaternion::from_euler_angles(0.1, -0.2, 0.3);
+        // 120 m and 0.3 deg: (120/40)^2 + (0.3/0.1)^2 = 18 in its prior's
+        // sigmas.
+        f.state.map_offset_ecef_m = Vector3::new(120.0, 0.0, 0.0);
+        f.state.map_offset_att_rad = Vector3::new(0.0, 0.0, 0.3f64.to_radians());
+        assert!((f.map_offset_distance() - 18.0).abs() < 1e-9, "{}", f.map_offset_distance());
+        let (seen, _) = f.apparent_pose(&q);
+        let (p_before, v_before) = (f.covariance[(POS, POS)], f.covariance[(VEL, VEL)]);
+        f.restart_map_offset(2.0, 10.0);
+        // The images' pose is kept; the offset is zero, at its prior.
+        let (after, _) = f.apparent_pose(&q);
+        assert!((after.position.0 - seen.position.0).norm() < 1e-6);
+        assert!(rotation_vector(&(after.q_ecef_cam * seen.q_ecef_cam.inverse())).norm() < 1e-12);
+        assert_eq!(f.map_offset_distance(), 0.0);
+        let (pose, _) = f.pose(&q);
+        assert!((pose.position.0 - seen.position.0).norm() < 1e-6, "the filter's pose is the images'");
+        for i in 0..3 {
+            assert!((f.covariance[(MAP + i, MAP + i)].sqrt() - 40.0).abs() < 1e-9);
+            assert!((f.covariance[(MAP_ATT + i, MAP_ATT + i)].sqrt() - 0.1f64.to_radians()).abs() < 1e-12);
+            assert_eq!(f.covariance[(MAP + i, POS + i)], 0.0);
+        }
+        // Position doubled; velocity raised to 10 m/s (it was 1).
+        assert!((f.covariance[(POS, POS)] / p_before - 4.0).abs() < 1e-9);
+        assert!(v_before < 1.01 && (f.covariance[(VEL, VEL)].sqrt() - 10.0).abs() < 1e-6);
     }
 
     #[test]

@@ -194,6 +194,9 @@ pub struct RunReport {
     pub gyro_jumps: usize,
     /// Accelerometer jumps the inertial filter doubted (`--accel-max-jump`).
     pub accel_jumps: usize,
+    /// Fixes after which the inertial filter's map offset, estimated beyond
+    /// its prior, was restarted ([`nav::MAP_DOUBT_CHI2`]).
+    pub map_doubts: usize,
     /// The camera's self-calibration at the end (`None`: off).
     pub calibration: Option<CalibrationReport>,
     /// The camera-IMU time offset the inertial filter ends with (`None`:
@@ -493,6 +496,7 @@ pub fn run_flight(
         imu_gaps,
         gyro_jumps: nav.inertial().map_or(0, |f| f.gyro_jumps()),
         accel_jumps: nav.inertial().map_or(0, |f| f.accel_jumps()),
+        map_doubts: nav.map_doubts(),
         calibration: nav.calibration().map(CalibrationReport::of),
         time_offset: nav.inertial().map(|f| {
             let (offset, sigma) = f.time_offset();

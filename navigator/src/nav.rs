@@ -413,6 +413,8 @@ pub struct Navigator<'a> {
     /// pose, as an acquisition's does, and until then no match or track
     /// updates the filter.
     guess_doubted: bool,
+    /// Fixes after which the map offset was restarted.
+    map_doubts: usize,
     /// Misses since the last accepted fix ([`Self::count_miss`]).
     misses: usize,
     /// Frames whose miss, after a fix, grew the doubt
@@ -699,6 +701,17 @@ const MAX_PEAK_SIGMA_PX: f64 = 5.0;
 /// 30 s outage (167 -> 69 m of drift after 15 s of fixes) and leaves no
 /// flight's NEES above its 95% band; the 30 km nadir fixes wander by +-50 m.
 pub const MAP_SIGMA_PER_GSD: f64 = 4.0 / 3.0;
+/// A map offset estimated beyond this chi-square (6 degrees of freedom:
+/// 99%) of its prior restarts it ([`InsFilter::map_offset_distance`]). On
+/// the eight realistic flights no fix's estimate reaches 4.7 (the high
+/// rocket's; the balloons' 1.7 at most); the 30 km nadir balloon whose
+/// accelerometer read 10 m/s^2 too much for 5 s reached 21.8, one that
+/// read 100 m/s^2 too much for 1 s (not doubted as a jump) 65.9.
+pub const MAP_DOUBT_CHI2: f64 = 12.59;
+
+/// The velocity's sigma (m/s per axis, at least) after a map offset's
+/// restart ([`MAP_DOUBT_CHI2`]).
+pub const MAP_DOUBT_VELOCITY_M_S: f64 = 10.0;
 /// The map offset's attitude part per metre of the landmarks' GSD (deg):
 /// 0.1 deg at 30 m, where the realistic 30 km nadir fixes' tilt wanders by
 /// 0.03-0.1 deg.
@@ -841,6 +854,7 @@ impl<'a> Navigator<'a> {
             ins,
             track: None,
             guess_doubted: false,
+            map_doubts: 0,
             misses: 0,
             doubted_frames: 0,
             pool,
@@ -1144,6 +1158,32 @@ impl<'a> Navigator<'a> {
             self.doubted_frames += 1;
         }
         self.guess_doubted = true;
+    }
+
+    /// After an accepted fix: a map offset estimated beyond
+    /// [`MAP_DOUBT_CHI2`] of its prior ([`InsFilter::map_offset_distance`])
+    /// restarts it ([`InsFilter::restart_map_offset`]): the images were
+    /// being explained by a database error the model does not allow, which
+    /// is what a velocity gone wrong (an accelerometer's error the filter
+    /// trusted) looks like through a narrow view, whose shift a map tilt
+    /// passes for. Returns the fix's new covariance when it did.
+    fn doubt_map_offset(&mut self, t: f64, calibration_cov: &Matrix6<f64>) -> Option<Matrix6<f64>> {
+        let f = self.ins.as_mut()?;
+        let d2 = f.map_offset_distance();
+        if !(d2 > MAP_DOUBT_CHI2) {
+            return None;
+        }
+        info!("t {t:.3}: the map offset is {d2:.1} (chi-square) from its prior: restarted, the pose as the images see it, its uncertainty doubled");
+        f.restart_map_offset(2.0, MAP_DOUBT_VELOCITY_M_S);
+        self.map_doubts += 1;
+        let (pose, cov) = f.pose(&self.q_imu_cam);
+        self.pose = pose;
+        Some(cov + calibration_cov)
+    }
+
+    /// Fixes after which the map offset was restarted ([`MAP_DOUBT_CHI2`]).
+    pub fn map_doubts(&self) -> usize {
+        self.map_doubts
     }
 
     /// Counts a frame without a fix as a miss when its search found as
@@ -1455,6 +1495,7 @@ impl<'a> Navigator<'a> {
                         }
                     };
                     self.log_fix(t, &ecef);
+                    let ecef = self.doubt_map_offset(t, &calibration_cov).unwrap_or(ecef);
                     covariance = Some(PoseCovariance { t, position: self.pose.position.to_geodetic(), ecef });
                 } else {
                     debug!("t {t:.3}: fix rejected ({} inliers): {rejection:?}", sol.inliers);

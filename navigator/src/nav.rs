@@ -702,11 +702,12 @@ const MAX_PEAK_SIGMA_PX: f64 = 5.0;
 /// flight's NEES above its 95% band; the 30 km nadir fixes wander by +-50 m.
 pub const MAP_SIGMA_PER_GSD: f64 = 4.0 / 3.0;
 /// A map offset estimated beyond this chi-square (6 degrees of freedom:
-/// 99%) of its prior restarts it ([`InsFilter::map_offset_distance`]). On
+/// 95%) of its prior restarts it ([`InsFilter::map_offset_distance`]). On
 /// the eight realistic flights no fix's estimate reaches 4.7 (the high
 /// rocket's; the balloons' 1.7 at most); the 30 km nadir balloon whose
 /// accelerometer read 10 m/s^2 too much for 5 s reached 21.8, one that
-/// read 100 m/s^2 too much for 1 s (not doubted as a jump) 65.9.
+/// read 100 m/s^2 too much for 1 s (not doubted as a jump) 65.9. At 16.81
+/// (99%) the first restart came 200 m off, at this 166 m.
 pub const MAP_DOUBT_CHI2: f64 = 12.59;
 
 /// The velocity's sigma (m/s per axis, at least) after a map offset's

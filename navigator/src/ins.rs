@@ -294,8 +294,6 @@ pub struct InsFilter {
     gyro_watch: JumpWatch,
     /// The accelerometer's jumps (m/s^2, IMU frame, bias included).
     accel_watch: JumpWatch,
-    /// The gap in the IMU log being crossed: its first sample's time.
-    gap: Option<f64>,
     /// Time crossed in gaps of the IMU log so far (s): between two states
     /// whose values differ, the gyro did not measure all of the turn.
     pub gap_crossed_s: f64,
@@ -359,7 +357,6 @@ impl InsFilter {
             principal_error_px: Vector2::zeros(),
             gyro_watch: JumpWatch::default(),
             accel_watch: JumpWatch::default(),
-            gap: None,
             gap_crossed_s: 0.0,
         }
     }
@@ -388,7 +385,6 @@ impl InsFilter {
                 self.cross_gap(a, b, &imu[k - 1], &imu[k], &mut acc);
                 return;
             }
-            self.gap = None;
             self.watch_gyro(&imu[k].w_imu_rad_s, b - a, &mut acc);
             if let Some(f) = &imu[k].f_imu_m_s2 {
                 self.watch_accel(f, b - a, &mut acc);
@@ -418,7 +414,6 @@ impl InsFilter {
     /// restarts at the sample after.
     fn cross_gap(&mut self, a: f64, b: f64, before: &ImuSample, after: &ImuSample, acc: &mut Accumulated) {
         let (begin, end) = (before.t, after.t);
-        self.gap = Some(begin);
         self.gyro_watch.restart(Some(after.w_imu_rad_s));
         self.accel_watch.restart(after.f_imu_m_s2);
         self.gap_crossed_s += b - a;

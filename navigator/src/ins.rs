@@ -923,8 +923,9 @@ impl InsFilter {
     /// offset moved into the position and attitude), the offset starts
     /// again at zero with its prior, uncorrelated, the position, velocity
     /// and attitude sigmas are scaled by `factor` (correlations kept), and
-    /// the velocity's raised to `velocity_sigma_m_s` per axis at least, so
-    /// the next fixes correct the state that drifted.
+    /// the velocity's scaled further until its largest axis reaches
+    /// `velocity_sigma_m_s`, so the next fixes correct the state that
+    /// drifted.
     pub fn restart_map_offset(&mut self, factor: f64, velocity_sigma_m_s: f64) {
         let s = &mut self.state;
         s.position = Ecef(s.position.0 + s.map_offset_ecef_m);

@@ -197,6 +197,9 @@ pub struct RunReport {
     /// Fixes after which the inertial filter's map offset, estimated beyond
     /// its prior, was restarted ([`nav::MAP_DOUBT_CHI2`]).
     pub map_doubts: usize,
+    /// The largest chi-square of that map offset in its prior at an
+    /// accepted fix (how near [`nav::MAP_DOUBT_CHI2`] the flight came).
+    pub map_chi2_max: f64,
     /// The camera's self-calibration at the end (`None`: off).
     pub calibration: Option<CalibrationReport>,
     /// The camera-IMU time offset the inertial filter ends with (`None`:
@@ -497,6 +500,7 @@ pub fn run_flight(
         gyro_jumps: nav.inertial().map_or(0, |f| f.gyro_jumps()),
         accel_jumps: nav.inertial().map_or(0, |f| f.accel_jumps()),
         map_doubts: nav.map_doubts(),
+        map_chi2_max: nav.map_chi2_max(),
         calibration: nav.calibration().map(CalibrationReport::of),
         time_offset: nav.inertial().map(|f| {
             let (offset, sigma) = f.time_offset();

@@ -415,6 +415,8 @@ pub struct Navigator<'a> {
     guess_doubted: bool,
     /// Fixes after which the map offset was restarted.
     map_doubts: usize,
+    /// The largest map offset chi-square an accepted fix found.
+    map_chi2_max: f64,
     /// Misses since the last accepted fix ([`Self::count_miss`]).
     misses: usize,
     /// Frames whose miss, after a fix, grew the doubt
@@ -704,10 +706,11 @@ pub const MAP_SIGMA_PER_GSD: f64 = 4.0 / 3.0;
 /// A map offset estimated beyond this chi-square (6 degrees of freedom:
 /// 95%) of its prior restarts it ([`InsFilter::map_offset_distance`]). On
 /// the eight realistic flights no fix's estimate reaches 4.7 (the high
-/// rocket's; the balloons' 1.7 at most); the 30 km nadir balloon whose
-/// accelerometer read 10 m/s^2 too much for 5 s reached 21.8, one that
-/// read 100 m/s^2 too much for 1 s (not doubted as a jump) 65.9. At 16.81
-/// (99%) the first restart came 200 m off, at this 166 m.
+/// rocket's; the balloons' 1.7 at most: the run report's `map_chi2_max`);
+/// the 30 km nadir balloon whose accelerometer read 10 m/s^2 too much for
+/// 5 s reached 21.8, one that read 100 m/s^2 too much for 1 s (not doubted
+/// as a jump) 65.9 (a build that only logged it, restarting nothing). With
+/// 16.81 (99%) the first restart came 200 m off, with this 166 m.
 pub const MAP_DOUBT_CHI2: f64 = 12.59;
 
 /// The velocity's sigma (m/s per axis, at least) after a map offset's
@@ -856,6 +859,7 @@ impl<'a> Navigator<'a> {
             track: None,
             guess_doubted: false,
             map_doubts: 0,
+            map_chi2_max: 0.0,
             misses: 0,
             doubted_frames: 0,
             pool,
@@ -1171,6 +1175,7 @@ impl<'a> Navigator<'a> {
     fn doubt_map_offset(&mut self, t: f64, calibration_cov: &Matrix6<f64>) -> Option<Matrix6<f64>> {
         let f = self.ins.as_mut()?;
         let d2 = f.map_offset_distance();
+        self.map_chi2_max = self.map_chi2_max.max(d2);
         if !(d2 > MAP_DOUBT_CHI2) {
             return None;
         }
@@ -1185,6 +1190,13 @@ impl<'a> Navigator<'a> {
     /// Fixes after which the map offset was restarted ([`MAP_DOUBT_CHI2`]).
     pub fn map_doubts(&self) -> usize {
         self.map_doubts
+    }
+
+    /// The largest chi-square of the map offset in its prior that an
+    /// accepted fix found (before any restart; 0 without the inertial
+    /// filter or a fix).
+    pub fn map_chi2_max(&self) -> f64 {
+        self.map_chi2_max
     }
 
     /// Counts a frame without a fix as a miss when its search found as

@@ -337,6 +337,15 @@ struct NavigateArgs {
     /// DOUBT * sqrt(t^3 / 3) t seconds into the gap, up to 10 deg.
     #[arg(long, default_value_t = 3.0)]
     imu_gap_doubt: f64,
+    /// The gyro's measurement range per axis (deg/s): a sample beyond it is
+    /// no measurement (a corrupt record) and is left out, reported; the
+    /// default is beyond any gyro flown.
+    #[arg(long, default_value_t = trn_navigator::nav::DEFAULT_GYRO_RANGE_DEG_S)]
+    gyro_range: f64,
+    /// The accelerometer's measurement range per axis (m/s^2), as
+    /// --gyro-range's.
+    #[arg(long, default_value_t = trn_navigator::nav::DEFAULT_ACCEL_RANGE_M_S2)]
+    accel_range: f64,
     /// Write a picture per processed frame here: inliers green, outliers red,
     /// where the pose guess predicted each landmark blue with a line to the match.
     #[arg(long)]
@@ -732,6 +741,8 @@ fn nav_params(a: &NavigateArgs) -> trn_navigator::NavParams {
     params.gyro_max_jump_deg_s = a.gyro_max_jump;
     params.imu_gap_doubt_deg_s_sqrt_s = a.imu_gap_doubt;
     params.accel_max_jump_m_s2 = a.accel_max_jump;
+    params.gyro_range_deg_s = a.gyro_range;
+    params.accel_range_m_s2 = a.accel_range;
     params.calibration = (!a.no_self_calibration).then(|| trn_navigator::calibration::CalibrationParams {
         focal_sigma_rel: a.focal_sigma / 100.0,
         principal_sigma_px: a.principal_point_sigma,

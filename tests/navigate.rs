@@ -512,6 +512,8 @@ fn bad_inputs_are_named() {
         ("--gyro-max-jump", "nan"),
         ("--imu-gap-doubt", "nan"),
         ("--accel-max-jump", "inf"),
+        ("--gyro-range", "0"),
+        ("--accel-range", "nan"),
         ("--matches-dir", file.to_str().unwrap()),
         ("--shading-weight", "1.5"),
         ("--sun", "250"),
@@ -815,13 +817,14 @@ fn edit_imu(flight: &Path, mut edit: impl FnMut(&mut [f64]) -> bool) {
 /// #13's "doubt it, report it, recover" where the sensors fail: the
 /// realistic 30 km nadir balloon (10 s) with its gyro turned 3 deg in
 /// 20 ms (four samples of 150 deg/s more about the IMU's x axis, at 2 s),
-/// with its IMU silent for 2 s (from 2 s), and with unreadable images.
+/// with its IMU silent for 2 s (from 2 s), with samples no sensor
+/// measures, and with unreadable images.
 /// Before the navigator doubted a gyro's jumps and a run of frames whose
 /// matches did not agree, such a turn left it searching 3 deg from the
 /// landmarks for the rest of the flight (the full 60 s flight turned 5 deg:
 /// 21 of 121 frames fixed, all before it; `scripts/bench_faults.sh`).
 #[test]
-fn recovers_from_a_gyro_glitch_an_accelerometer_shock_an_imu_gap_and_bad_images() {
+fn recovers_from_a_gyro_glitch_an_accelerometer_shock_an_imu_gap_corrupt_samples_and_bad_images() {
     let dir = tempfile::tempdir().unwrap();
     let (db, flight) = realistic_flight(dir.path(), "sierra-balloon-nadir", 300.0, "10");
     // Navigates a copy of the flight changed by `change`: (report, rows, worst fix m).
@@ -902,6 +905,33 @@ fn recovers_from_a_gyro_glitch_an_accelerometer_shock_an_imu_gap_and_bad_images(
     assert!(r.iter().all(|x| x.1 == "fix"), "{r:?}");
     assert_eq!(report["doubted_frames"], 0, "{report}");
     assert!(fixed_after(&r, 4.0) >= 8, "{r:?}");
+    assert!(worst < 250.0, "{worst:.1} m");
+
+    // Samples no sensor measures (a flipped bit in an exponent): left out
+    // of the log, reported; the flight navigates as without them. Trusted,
+    // one such sample turns the filter's state to NaN.
+    let corrupt = |f: &Path| {
+        let mut k = 0;
+        edit_imu(f, |v| {
+            k += 1;
+            match k {
+                400 => v[2] = 1e300,
+                401 => v[5] = -1e300,
+                900 => v[6] = 3e4,
+                _ => {}
+            }
+            true
+        })
+    };
+    let (report, r, worst, log) = run_changed("corrupt", &corrupt, &[]);
+    assert_eq!(report["imu_out_of_range"]["samples"], 3, "{report}");
+    assert!(log.contains("imu.csv: 3 sample(s) beyond the sensors' range"), "{log}");
+    assert!(r.iter().all(|x| x.1 == "fix"), "{r:?}");
+    assert_eq!(
+        (report["gyro_jumps"].as_u64(), report["accel_jumps"].as_u64()),
+        (Some(0), Some(0)),
+        "{report}"
+    );
     assert!(worst < 250.0, "{worst:.1} m");
 
     // One image truncated, one of another size: their frames are carried

@@ -120,6 +120,12 @@ impl RunOptions {
         if !(p.accel_max_jump_m_s2.is_finite() && p.accel_max_jump_m_s2 >= 0.0) {
             return bad("--accel-max-jump", "must be m/s^2 >= 0 (0: never doubted)");
         }
+        if !positive(p.gyro_range_deg_s) {
+            return bad("--gyro-range", "must be deg/s > 0");
+        }
+        if !positive(p.accel_range_m_s2) {
+            return bad("--accel-range", "must be m/s^2 > 0");
+        }
         if !(p.imu_gap_doubt_deg_s_sqrt_s.is_finite() && p.imu_gap_doubt_deg_s_sqrt_s >= 0.0) {
             return bad("--imu-gap-doubt", "must be deg/s/sqrt(s) >= 0 (0: none)");
         }
@@ -190,6 +196,9 @@ pub struct RunReport {
     /// Stretches of `imu.csv` without samples, longer than
     /// [`IMU_GAP_FACTOR`] times its median interval.
     pub imu_gaps: Vec<propagate::ImuGap>,
+    /// Samples of `imu.csv` beyond the sensors' range (`--gyro-range`,
+    /// `--accel-range`), left out (`None`: none).
+    pub imu_out_of_range: Option<OutOfRangeReport>,
     /// Gyro rate jumps the inertial filter doubted (`--gyro-max-jump`).
     pub gyro_jumps: usize,
     /// Accelerometer jumps the inertial filter doubted (`--accel-max-jump`).
@@ -207,6 +216,15 @@ pub struct RunReport {
     pub time_offset: Option<TimeOffsetReport>,
     /// The gyro bias the inertial filter ends with (deg/h, IMU frame).
     pub gyro_bias_imu_deg_h: Option<AxesReport>,
+}
+
+/// IMU samples left out as beyond the sensors' range.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct OutOfRangeReport {
+    pub samples: usize,
+    /// The first and the last of them (s).
+    pub first_t: f64,
+    pub last_t: f64,
 }
 
 /// A vector estimate and its per-axis sigmas (the unit and frame in the
@@ -375,6 +393,7 @@ pub fn run_flight(
     opts: &RunOptions,
     mut progress: impl FnMut(usize),
 ) -> Result<RunOutput, NavError> {
+    opts.check()?;
     let mut nav = Navigator::new(source, &flight.camera, &flight.imu, &flight.init, opts.params.clone())?;
     let mut records = Vec::new();
     let mut matches = Vec::new();
@@ -382,7 +401,6 @@ pub fn run_flight(
     let mut imu_rate = Vec::new();
     let mut gated = 0;
     let mut tracked = 0;
-    opts.check()?;
     let row = |p: FilterPose, status: FixStatus| {
         let position = p.pose.position.to_geodetic();
         let record = NavRecord {
@@ -396,7 +414,21 @@ pub fn run_flight(
     };
     let mut next_due = f64::NEG_INFINITY;
     let mut rejected = RejectedCounts::default();
-    let imu_gaps = propagate::imu_gaps(&flight.imu, IMU_GAP_FACTOR);
+    let imu_out_of_range = match nav.imu_out_of_range() {
+        [] => None,
+        out => Some(OutOfRangeReport { samples: out.len(), first_t: out[0], last_t: out[out.len() - 1] }),
+    };
+    if let Some(o) = &imu_out_of_range {
+        tracing::warn!(
+            "imu.csv: {} sample(s) beyond the sensors' range (--gyro-range {} deg/s, --accel-range {} m/s^2), from t {:.4} to {:.4} s: no measurements, left out",
+            o.samples,
+            opts.params.gyro_range_deg_s,
+            opts.params.accel_range_m_s2,
+            o.first_t,
+            o.last_t
+        );
+    }
+    let imu_gaps = propagate::imu_gaps(nav.imu(), IMU_GAP_FACTOR);
     if let Some(longest) = imu_gaps.iter().max_by(|a, b| (a.to_t - a.from_t).total_cmp(&(b.to_t - b.from_t)))
     {
         tracing::warn!(
@@ -497,6 +529,7 @@ pub fn run_flight(
         doubted_frames: nav.doubted_frames(),
         skipped_images: skipped,
         imu_gaps,
+        imu_out_of_range,
         gyro_jumps: nav.inertial().map_or(0, |f| f.gyro_jumps()),
         accel_jumps: nav.inertial().map_or(0, |f| f.accel_jumps()),
         map_doubts: nav.map_doubts(),

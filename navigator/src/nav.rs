@@ -125,6 +125,11 @@ pub struct NavParams {
     /// beyond this (m/s^2; 0: none) is doubted by the inertial filter
     /// ([`crate::ins::InsErrors::accel_max_jump_m_s2`]).
     pub accel_max_jump_m_s2: f64,
+    /// The gyro's and the accelerometer's measurement range per axis
+    /// (deg/s, m/s^2): a sample beyond either is no measurement and is left
+    /// out of the log ([`crate::propagate::within_range`]), reported.
+    pub gyro_range_deg_s: f64,
+    pub accel_range_m_s2: f64,
     /// Velocity uncertainty between fixes (m/s) in [`FilterMode::Fixes`].
     pub velocity_sigma_m_s: f64,
     /// The inertial filter's initial velocity uncertainty (m/s; the initial
@@ -230,6 +235,10 @@ impl Default for NavParams {
             gyro_max_jump_deg_s: 10.0,
             imu_gap_doubt_deg_s_sqrt_s: 3.0,
             accel_max_jump_m_s2: 10.0,
+            // Beyond any gyro or accelerometer a balloon, rocket or lander
+            // flies (their full scales: 2000-4000 deg/s, 16-400 g).
+            gyro_range_deg_s: DEFAULT_GYRO_RANGE_DEG_S,
+            accel_range_m_s2: DEFAULT_ACCEL_RANGE_M_S2,
             gyro_bias_walk_deg_s_sqrt_s: 0.01 / 3600.0,
             velocity_sigma_m_s: 20.0,
             init_velocity_sigma_m_s: 300.0,
@@ -363,6 +372,11 @@ pub struct FilterPose {
     pub covariance: Matrix6<f64>,
 }
 
+/// The default of [`NavParams::gyro_range_deg_s`].
+pub const DEFAULT_GYRO_RANGE_DEG_S: f64 = 10_000.0;
+/// The default of [`NavParams::accel_range_m_s2`] (about 1000 g).
+pub const DEFAULT_ACCEL_RANGE_M_S2: f64 = 10_000.0;
+
 /// Terrain relative navigation over one flight.
 pub struct Navigator<'a> {
     source: &'a dyn LandmarkSource,
@@ -372,7 +386,10 @@ pub struct Navigator<'a> {
     /// The camera `lut` was made for.
     lut_camera: CameraModel,
     q_imu_cam: UnitQuaternion<f64>,
-    imu: &'a [ImuSample],
+    /// The IMU log, less any sample beyond the sensors' range.
+    imu: std::borrow::Cow<'a, [ImuSample]>,
+    /// The times of the samples left out of `imu`.
+    imu_out_of_range: Vec<f64>,
     params: NavParams,
     lut: UndistortLut,
     /// The database's levels.
@@ -753,6 +770,14 @@ impl<'a> Navigator<'a> {
                     })?,
             ),
         };
+        let range = crate::propagate::ImuRange {
+            gyro_rad_s: params.gyro_range_deg_s.to_radians(),
+            accel_m_s2: params.accel_range_m_s2,
+        };
+        let (imu, imu_out_of_range) = match crate::propagate::within_range(imu, &range) {
+            Some((kept, out)) => (std::borrow::Cow::Owned(kept), out),
+            None => (std::borrow::Cow::Borrowed(imu), Vec::new()),
+        };
         let level_infos = source.levels()?;
         let levels = DbLevel::of(&level_infos);
         if levels.is_empty() {
@@ -815,7 +840,7 @@ impl<'a> Navigator<'a> {
                     principal_walk_px_sqrt_s: principal_prior.map_or(0.0, |c| c.principal_walk_px_sqrt_s),
                     gyro_max_jump_rad_s: deg_s(params.gyro_max_jump_deg_s),
                     accel_max_jump_m_s2: params.accel_max_jump_m_s2,
-                    imu_gap_s: crate::propagate::gap_limit_s(imu, crate::IMU_GAP_FACTOR).unwrap_or(0.0),
+                    imu_gap_s: crate::propagate::gap_limit_s(&imu, crate::IMU_GAP_FACTOR).unwrap_or(0.0),
                     gap_rate_walk_rad_s_sqrt_s: deg_s(params.imu_gap_doubt_deg_s_sqrt_s),
                 },
             )
@@ -832,6 +857,7 @@ impl<'a> Navigator<'a> {
             lut_camera: camera.model,
             q_imu_cam: camera.q_cam_imu().inverse(),
             imu,
+            imu_out_of_range,
             lut: UndistortLut::new(&camera.model, PYRAMID_LEVELS),
             levels,
             lighting,
@@ -884,7 +910,7 @@ impl<'a> Navigator<'a> {
     fn predict(&self, t: f64) -> Prediction {
         if let Some(ins) = &self.ins {
             let mut f = ins.clone();
-            f.propagate(t, self.imu);
+            f.propagate(t, &self.imu);
             let (guess, cov) = f.apparent_pose(&self.q_imu_cam);
             // What moves the landmarks in the image: the position error
             // across the line of sight, and along it only by the scale it
@@ -911,7 +937,7 @@ impl<'a> Navigator<'a> {
         let sigma_m = self.sigma_m + v_sigma * dt.max(0.0);
         let (guess, attitude) = if self.params.use_gyro {
             let q_ecef_imu = self.pose.q_ecef_cam * self.q_imu_cam.inverse();
-            let p = propagate_with_bias(q_ecef_imu, self.t, t, self.imu, &self.filter.bias_imu_rad_s);
+            let p = propagate_with_bias(q_ecef_imu, self.t, t, &self.imu, &self.filter.bias_imu_rad_s);
             let cov = self.filter.propagated(&p.bias_to_attitude, dt);
             (CameraPose::new(position, p.q_ecef_imu * self.q_imu_cam), cov)
         } else {
@@ -1187,6 +1213,17 @@ impl<'a> Navigator<'a> {
         Some(cov + calibration_cov)
     }
 
+    /// The IMU log the navigator uses: the flight's, less any sample
+    /// beyond the sensors' range ([`NavParams::gyro_range_deg_s`]).
+    pub fn imu(&self) -> &[ImuSample] {
+        &self.imu
+    }
+
+    /// The times of the IMU samples left out as beyond the sensors' range.
+    pub fn imu_out_of_range(&self) -> &[f64] {
+        &self.imu_out_of_range
+    }
+
     /// Fixes after which the map offset was restarted ([`MAP_DOUBT_CHI2`]).
     pub fn map_doubts(&self) -> usize {
         self.map_doubts
@@ -1372,7 +1409,7 @@ impl<'a> Navigator<'a> {
         self.imu[from..to.max(from)]
             .iter()
             .map(|s| {
-                f.propagate(s.t, self.imu);
+                f.propagate(s.t, &self.imu);
                 let (pose, covariance) = f.pose(&self.q_imu_cam);
                 FilterPose { t: s.t, pose, covariance }
             })
@@ -1383,7 +1420,7 @@ impl<'a> Navigator<'a> {
     /// state carried there when older); `None` without the filter.
     pub fn filter_pose(&self, t: f64) -> Option<FilterPose> {
         let mut f = self.ins.clone()?;
-        f.propagate(t, self.imu);
+        f.propagate(t, &self.imu);
         let (pose, covariance) = f.pose(&self.q_imu_cam);
         Some(FilterPose { t: f.state.t, pose, covariance })
     }

@@ -139,6 +139,36 @@ pub fn imu_gaps(imu: &[ImuSample], factor: f64) -> Vec<ImuGap> {
         .collect()
 }
 
+/// The measurement range of an IMU's sensors, per axis: a sample beyond it
+/// is no measurement (a corrupt record: a flipped bit in an exponent, a
+/// value from another unit), since a sensor at its limit reads the limit.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ImuRange {
+    pub gyro_rad_s: f64,
+    pub accel_m_s2: f64,
+}
+
+impl ImuRange {
+    /// Whether every axis of `s` is within the range (an accelerometer
+    /// that recorded nothing is).
+    pub fn holds(&self, s: &ImuSample) -> bool {
+        let within = |v: &Vector3<f64>, limit: f64| v.iter().all(|x| x.abs() <= limit);
+        within(&s.w_imu_rad_s, self.gyro_rad_s) && s.f_imu_m_s2.is_none_or(|f| within(&f, self.accel_m_s2))
+    }
+}
+
+/// The samples of `imu` within `range`, and the times of those left out;
+/// `None` when every sample is within it. The samples left out make a
+/// longer interval between those either side, crossed like any (a gap where
+/// it is one: [`imu_gaps`]).
+pub fn within_range(imu: &[ImuSample], range: &ImuRange) -> Option<(Vec<ImuSample>, Vec<f64>)> {
+    if imu.iter().all(|s| range.holds(s)) {
+        return None;
+    }
+    let (kept, out): (Vec<ImuSample>, Vec<ImuSample>) = imu.iter().partition(|s| range.holds(s));
+    Some((kept, out.iter().map(|s| s.t).collect()))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -171,6 +201,29 @@ mod tests {
         assert!((gaps[0].from_t - 4.0).abs() < 1e-9 && (gaps[0].to_t - 7.0).abs() < 1e-9, "{gaps:?}");
         assert!((gaps[1].to_t - gaps[1].from_t - 0.03).abs() < 1e-6, "{gaps:?}");
         assert!(imu_gaps(&imu[..1], 5.0).is_empty());
+    }
+
+    #[test]
+    fn samples_beyond_the_sensors_range_are_left_out() {
+        let range = ImuRange { gyro_rad_s: 10.0, accel_m_s2: 100.0 };
+        let mut imu = samples(100.0, 1.0, |_| Vector3::new(0.1, -0.2, 0.3));
+        for s in &mut imu {
+            s.f_imu_m_s2 = Some(Vector3::new(0.0, 0.0, -9.8));
+        }
+        assert!(within_range(&imu, &range).is_none());
+        // At the limit a sensor reads the limit: kept. Beyond it, on any
+        // axis of either sensor: left out, the neighbours kept.
+        imu[10].w_imu_rad_s.y = -10.0;
+        imu[20].w_imu_rad_s.z = 10.5;
+        imu[30].f_imu_m_s2 = Some(Vector3::new(1e300, 0.0, -9.8));
+        imu[31].f_imu_m_s2 = None;
+        let (kept, out) = within_range(&imu, &range).expect("two out of range");
+        assert_eq!(out, vec![imu[20].t, imu[30].t]);
+        assert_eq!(kept.len(), imu.len() - 2);
+        assert!(kept.iter().all(|s| range.holds(s)));
+        assert!(kept.iter().any(|s| s.t == imu[10].t) && kept.iter().any(|s| s.t == imu[31].t));
+        // Two neighbours left out make an interval of three: no gap at 5x.
+        assert!(imu_gaps(&kept, 5.0).is_empty());
     }
 
     #[test]

@@ -933,6 +933,18 @@ fn recovers_from_a_gyro_glitch_an_accelerometer_shock_an_imu_gap_corrupt_samples
         "{report}"
     );
     assert!(worst < 250.0, "{worst:.1} m");
+    // Let through (the ranges opened), they turn the state to NaN: an error
+    // that says when, and nothing written.
+    let copy = dir.path().join("corrupt-trusted");
+    copy_flight(&flight, &copy);
+    corrupt(&copy);
+    let s = NavFixture { dir: tempfile::tempdir().unwrap(), db: db.clone(), flight: copy };
+    let out = s.root().join("poses.csv");
+    let o = navigate(&s, &out, &["--gyro-range", "1e308", "--accel-range", "1e308"]);
+    assert!(!o.status.success(), "NaN poses written");
+    let e = stderr(&o);
+    assert!(e.lines().any(|l| l.starts_with("error:") && l.contains("is not finite")), "{e}");
+    assert!(!out.exists() && !out.with_file_name("covariance.csv").exists());
 
     // One image truncated, one of another size: their frames are carried
     // (propagated, no match), reported, and the others navigate as before.

@@ -62,6 +62,10 @@ pub enum NavError {
     Picture { path: PathBuf, reason: String },
     #[error("invalid option {option}: {reason}")]
     Option { option: &'static str, reason: String },
+    /// The navigator's pose stopped being a number (a defect: every input
+    /// passed its checks); nothing is written.
+    #[error("the navigator's pose at t {t:.3} s is not finite (a defect of trn navigate: please report it with the flight); nothing written")]
+    NotFinite { t: f64 },
 }
 
 /// What `trn navigate` is asked to do.
@@ -373,6 +377,12 @@ fn write_picture(path: &Path, pic: &::image::RgbImage) -> Result<(), NavError> {
     trn_flight::write_atomic(path, |w| w.write_all(&png)).map_err(|e| err(e.to_string()))
 }
 
+/// Whether every number of a pose is finite.
+fn finite_pose(p: &TimedPose) -> bool {
+    let g = &p.position;
+    [g.lat_deg, g.lon_deg, g.h_m].iter().chain(p.q_ecef_cam.coords.iter()).all(|v| v.is_finite())
+}
+
 /// What a run produced: the rows of `poses.csv`, `matches.csv` and
 /// `covariance.csv`.
 pub struct RunOutput {
@@ -470,6 +480,9 @@ pub fn run_flight(
                 if opts.imu_rate {
                     imu_rate.extend(nav.filter_pose(frame.t).map(|p| row(p, FixStatus::Propagated)));
                 }
+                if !finite_pose(&record.pose) {
+                    return Err(NavError::NotFinite { t: frame.t });
+                }
                 records.push(record);
                 next_due = f64::NEG_INFINITY;
                 continue;
@@ -507,6 +520,9 @@ pub fn run_flight(
         }
         gated += usize::from(r.gated_matches > 0);
         tracked += usize::from(r.tracked > 0);
+        if !finite_pose(&r.record.pose) {
+            return Err(NavError::NotFinite { t: frame.t });
+        }
         records.push(r.record);
         matches.extend(r.matches);
         covariances.extend(r.covariance);

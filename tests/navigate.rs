@@ -890,6 +890,24 @@ fn recovers_from_a_gyro_glitch_an_accelerometer_shock_an_imu_gap_corrupt_samples
     let (report, _, worst_off, _) = run_changed("shock-unwatched", &shock, &["--accel-max-jump", "0"]);
     assert_eq!(report["accel_jumps"], 0, "{report}");
     assert!(worst_off > worst + 20.0, "{worst_off:.1} m not doubted, {worst:.1} m doubted");
+    // Unwatched, 300 m/s^2 for 1 s leaves the velocity 300 m/s off and sure
+    // of itself: the fixes are lost, and the restart after the run of misses
+    // doubts the velocity by how far the prediction had drifted, so the
+    // fixes after it find the velocity.
+    let big = |f: &Path| {
+        edit_imu(f, |v| {
+            if v[0] > 2.0 && v[0] <= 3.0 + 1e-9 {
+                v[4] += 300.0;
+            }
+            true
+        })
+    };
+    let (report, r, worst, _) = run_changed("big-shock-unwatched", &big, &["--accel-max-jump", "0"]);
+    assert!(report["doubted_frames"].as_u64().unwrap() >= 1, "{report}");
+    // Before, the restart kept the velocity as sure as it was: two fixes,
+    // then lost again to the end (6.5 and 7 s of 10).
+    assert!(r.iter().rev().take(6).all(|x| x.1 == "fix"), "{r:?}");
+    assert!(worst < 250.0, "{worst:.1} m");
 
     let gap = |f: &Path| edit_imu(f, |v| !(v[0] > 2.0 && v[0] < 4.0));
     let (report, r, worst, log) = run_changed("gap", &gap, &[]);

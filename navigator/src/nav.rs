@@ -372,6 +372,10 @@ pub struct FilterPose {
     pub covariance: Matrix6<f64>,
 }
 
+/// The least time over which a restart's drift from the filter's
+/// prediction is taken as a velocity error (s; [`Navigator::accept_ins`]).
+pub const RESTART_MIN_SPAN_S: f64 = 1.0;
+
 /// The default of [`NavParams::gyro_range_deg_s`].
 pub const DEFAULT_GYRO_RANGE_DEG_S: f64 = 10_000.0;
 /// The default of [`NavParams::accel_range_m_s2`] (about 1000 g).
@@ -1166,8 +1170,9 @@ impl<'a> Navigator<'a> {
     /// say the filter's pose may be wrong by more than it claims (an IMU
     /// glitch or gap turned the attitude), and each further miss doubts it
     /// (`missed`: this frame was one). Either way the inertial filter's pose uncertainty doubles
-    /// (not the velocity's: the next fix then restarts the pose and keeps
-    /// the velocity's prior), so the search widens frame by frame up to an
+    /// (not the velocity's: the next fix then restarts the pose and doubts
+    /// the velocity by how far the prediction had drifted from it since the
+    /// last fix, [`RESTART_MIN_SPAN_S`]), so the search widens frame by frame up to an
     /// acquisition (a guess 3 km off, told 300 m, is fixed on its third
     /// frame), up to sigmas of [`DOUBT_MAX_ATTITUDE_DEG`] and
     /// [`DOUBT_MAX_POSITION_M`].
@@ -1316,6 +1321,7 @@ impl<'a> Navigator<'a> {
         sol: &Solution,
         calibration_cov: Matrix6<f64>,
         sensitivity: &IntrinsicsSensitivity,
+        since_fix_s: Option<f64>,
     ) -> Matrix6<f64> {
         let q = self.q_imu_cam;
         if let Some(gsd) = sol.median_gsd_m {
@@ -1351,8 +1357,17 @@ impl<'a> Navigator<'a> {
             _ if sol.acquisition || self.guess_doubted => {
                 self.guess_doubted = false;
                 if let Some(r) = self.refine_inliers(sol, None) {
-                    debug!("t {t:.3}: acquired: the filter's pose restarts from the image's");
-                    f.reset_pose(&q, &r.pose, &(r.covariance + calibration_cov), 0.0, sensitivity);
+                    // After fixes were lost, how far the prediction had gone
+                    // from what the image sees, over the time since the last
+                    // fix, is a velocity error the filter did not allow for
+                    // (an accelerometer's error it trusted): its velocity is
+                    // doubted as much, so the fixes after find it.
+                    let velocity_floor = since_fix_s.map_or(0.0, |dt| {
+                        let drift = (r.pose.position.0 - f.pose(&q).0.position.0).norm();
+                        drift / dt.max(RESTART_MIN_SPAN_S)
+                    });
+                    debug!("t {t:.3}: acquired: the filter's pose restarts from the image's (velocity sigma at least {velocity_floor:.1} m/s)");
+                    f.reset_pose(&q, &r.pose, &(r.covariance + calibration_cov), velocity_floor, sensitivity);
                     if f.forget_velocity_beyond(self.params.init_velocity_sigma_m_s) {
                         debug!("t {t:.3}: the velocity, doubted beyond the initial guess's, restarts as it");
                     }
@@ -1529,6 +1544,7 @@ impl<'a> Navigator<'a> {
                         self.last_sensitivity = sensitivity;
                     }
                     let calibration_cov = self.calibrate(t, &mut sol, frame, &mut pred.filter);
+                    let since_fix_s = self.last_fix.map(|(t0, _)| t - t0);
                     self.last_fix = Some((t, sol.pose));
                     self.misses = 0;
                     // A later acquisition in tiles starts from the nearest
@@ -1539,7 +1555,9 @@ impl<'a> Navigator<'a> {
                     self.alternation = 0;
                     self.wide_too_wide = false;
                     let ecef = match pred.filter {
-                        Carried::Ins(f) => self.accept_ins(t, f, &sol, calibration_cov, &sensitivity),
+                        Carried::Ins(f) => {
+                            self.accept_ins(t, f, &sol, calibration_cov, &sensitivity, since_fix_s)
+                        }
                         Carried::Attitude(attitude) => {
                             self.accept_fix(t, &pred.guess, &attitude, &sol) + calibration_cov
                         }

@@ -817,14 +817,15 @@ fn edit_imu(flight: &Path, mut edit: impl FnMut(&mut [f64]) -> bool) {
 /// #13's "doubt it, report it, recover" where the sensors fail: the
 /// realistic 30 km nadir balloon (10 s) with its gyro turned 3 deg in
 /// 20 ms (four samples of 150 deg/s more about the IMU's x axis, at 2 s),
-/// with its IMU silent for 2 s (from 2 s), with samples no sensor
-/// measures, and with unreadable images.
+/// with its accelerometer shocked (watched, and not: a velocity 300 m/s
+/// off), with its IMU silent for 2 s (from 2 s), with a log that ends at
+/// 5 s, with samples no sensor measures, and with unreadable images.
 /// Before the navigator doubted a gyro's jumps and a run of frames whose
 /// matches did not agree, such a turn left it searching 3 deg from the
 /// landmarks for the rest of the flight (the full 60 s flight turned 5 deg:
 /// 21 of 121 frames fixed, all before it; `scripts/bench_faults.sh`).
 #[test]
-fn recovers_from_a_gyro_glitch_an_accelerometer_shock_an_imu_gap_corrupt_samples_and_bad_images() {
+fn recovers_from_sensor_faults_and_bad_images() {
     let dir = tempfile::tempdir().unwrap();
     let (db, flight) = realistic_flight(dir.path(), "sierra-balloon-nadir", 300.0, "10");
     // Navigates a copy of the flight changed by `change`: (report, rows, worst fix m).
@@ -923,6 +924,18 @@ fn recovers_from_a_gyro_glitch_an_accelerometer_shock_an_imu_gap_corrupt_samples
     assert!(r.iter().all(|x| x.1 == "fix"), "{r:?}");
     assert_eq!(report["doubted_frames"], 0, "{report}");
     assert!(fixed_after(&r, 4.0) >= 8, "{r:?}");
+    assert!(worst < 250.0, "{worst:.1} m");
+
+    // A log that ends before the images (a recorder full): after its last
+    // sample the attitude is held, doubted as in a gap, and the images
+    // alone find it (before, every frame after it was lost).
+    let short = |f: &Path| edit_imu(f, |v| v[0] <= 5.0);
+    let (report, r, worst, log) = run_changed("short-log", &short, &[]);
+    let uncovered = report["imu_uncovered"].as_array().unwrap();
+    assert_eq!(uncovered.len(), 1, "{report}");
+    assert!((uncovered[0]["from_t"].as_f64().unwrap() - 5.0).abs() < 1e-6, "{uncovered:?}");
+    assert!(log.contains("imu.csv has no sample from t 5.000 to 10.000 s"), "{log}");
+    assert!(r.iter().all(|x| x.1 == "fix"), "{r:?}");
     assert!(worst < 250.0, "{worst:.1} m");
 
     // Samples no sensor measures (a flipped bit in an exponent): left out

@@ -297,6 +297,9 @@ pub struct InsFilter {
     /// Time crossed in gaps of the IMU log so far (s): between two states
     /// whose values differ, the gyro did not measure all of the turn.
     pub gap_crossed_s: f64,
+    /// The state's time at the start: time before the IMU log's first
+    /// sample is a stretch without samples from here.
+    t_start: f64,
 }
 
 fn block(p: &mut Covariance, at: usize, sigma: f64) {
@@ -358,14 +361,17 @@ impl InsFilter {
             gyro_watch: JumpWatch::default(),
             accel_watch: JumpWatch::default(),
             gap_crossed_s: 0.0,
+            t_start: state.t,
         }
     }
 
     /// Carries the state and covariance to `t1` through the IMU samples
     /// (each gyro sample the mean rate over the interval ending at its time,
     /// each accelerometer sample the specific force at its time, linearly
-    /// interpolated in between). Time no sample covers keeps the attitude
-    /// fixed in inertial space and the velocity as it was. An interval
+    /// interpolated in between). Time no sample covers (before the log's
+    /// first sample, after its last) keeps the attitude fixed in inertial
+    /// space, doubted as in a gap from the log's edge, and the velocity as
+    /// it was, walking as without an accelerometer. An interval
     /// longer than [`InsErrors::imu_gap_s`] is a gap: crossed on
     /// interpolated rates, the attitude doubted. `t1` before the state's
     /// time does nothing.
@@ -377,7 +383,7 @@ impl InsFilter {
         let mut acc = Accumulated::default();
         for_each_segment(imu, t0, t1, |a, b, sample| {
             let Some(k) = sample else {
-                self.step(b - a, None, Force::Free, &mut acc);
+                self.outside_log(a, b, imu, &mut acc);
                 return;
             };
             let (begin, end) = (if k > 0 { imu[k - 1].t } else { a }, imu[k].t);
@@ -417,8 +423,6 @@ impl InsFilter {
         self.gyro_watch.restart(Some(after.w_imu_rad_s));
         self.accel_watch.restart(after.f_imu_m_s2);
         self.gap_crossed_s += b - a;
-        let walk = self.errors.gap_rate_walk_rad_s_sqrt_s;
-        let cap = IMU_GAP_MAX_ANGLE_DEG.to_radians().powi(2);
         let free = self.errors.free_accel_m_s2_sqrt_s.powi(2);
         let steps = ((b - a) / GAP_STEP_S).ceil().max(1.0);
         let dt = (b - a) / steps;
@@ -430,17 +434,49 @@ impl InsFilter {
                 (Some(f0), Some(f1)) => Force::Measured(f0 + (f1 - f0) * s),
                 _ => Force::Free,
             };
-            // sigma^2 (tau1^3 - tau0^3) / 3 over the step, up to the cap
-            // (on the variance the axes will have at the flush).
-            let (tau0, tau1) = (s0 - begin, s1 - begin);
-            let now =
-                (0..3).map(|j| self.covariance[(ATT + j, ATT + j)] + acc.q[ATT + j]).fold(0.0, f64::max);
-            let added = (walk * walk * (tau1.powi(3) - tau0.powi(3)) / 3.0).min((cap - now).max(0.0));
+            self.doubt_unknown_rate(s0 - begin, s1 - begin, acc);
             for j in 0..3 {
-                acc.q[ATT + j] += added;
                 acc.q[VEL + j] += free * dt;
             }
             self.step(dt, Some(&w), force, acc);
+        }
+    }
+
+    /// The part `[a, b]` of time no sample of the log covers: before its
+    /// first sample (from the filter's start) or after its last. The
+    /// attitude stays fixed in inertial space, doubted as in a gap
+    /// ([`Self::cross_gap`]) from the log's edge (the rate there is not
+    /// known), the velocity walks as without an accelerometer; the jump
+    /// watches start again with the log.
+    fn outside_log(&mut self, a: f64, b: f64, imu: &[ImuSample], acc: &mut Accumulated) {
+        let after_log = imu.last().filter(|s| a >= s.t);
+        let edge = after_log.map_or(self.t_start, |s| s.t);
+        self.gyro_watch.restart(after_log.map(|s| s.w_imu_rad_s));
+        self.accel_watch.restart(after_log.and_then(|s| s.f_imu_m_s2));
+        if self.errors.imu_gap_s > 0.0 {
+            self.gap_crossed_s += b - a;
+        }
+        let steps = ((b - a) / GAP_STEP_S).ceil().max(1.0);
+        let dt = (b - a) / steps;
+        for i in 0..steps as usize {
+            let (tau0, tau1) = (a + dt * i as f64 - edge, a + dt * (i + 1) as f64 - edge);
+            self.doubt_unknown_rate(tau0.max(0.0), tau1.max(0.0), acc);
+            self.step(dt, None, Force::Free, acc);
+        }
+    }
+
+    /// Adds the attitude doubt of a rate not measured from `tau0` to
+    /// `tau1` seconds after the last one measured
+    /// ([`InsErrors::gap_rate_walk_rad_s_sqrt_s`]: `sigma^2 (tau1^3 -
+    /// tau0^3) / 3`), up to [`IMU_GAP_MAX_ANGLE_DEG`] on the variance the
+    /// axes will have at the flush.
+    fn doubt_unknown_rate(&mut self, tau0: f64, tau1: f64, acc: &mut Accumulated) {
+        let walk = self.errors.gap_rate_walk_rad_s_sqrt_s;
+        let cap = IMU_GAP_MAX_ANGLE_DEG.to_radians().powi(2);
+        let now = (0..3).map(|j| self.covariance[(ATT + j, ATT + j)] + acc.q[ATT + j]).fold(0.0, f64::max);
+        let added = (walk * walk * (tau1.powi(3) - tau0.powi(3)) / 3.0).min((cap - now).max(0.0));
+        for j in 0..3 {
+            acc.q[ATT + j] += added;
         }
     }
 
@@ -1538,6 +1574,44 @@ mod tests {
         f.covariance.fixed_view_mut::<3, 3>(ATT, ATT).fill_diagonal(0.01f64.to_radians().powi(2));
         f.propagate(2.5, &imu);
         assert!((sigma_deg(&f) - IMU_GAP_MAX_ANGLE_DEG).abs() < 0.05, "{}", sigma_deg(&f));
+    }
+
+    #[test]
+    fn time_outside_the_imu_log_is_doubted_as_a_gap_from_its_edge() {
+        // Gyro samples at 100 Hz from 1 to 3 s only (a log that starts late
+        // and ends early); no accelerometer.
+        let dt = 0.01;
+        let imu: Vec<ImuSample> = (100..=300)
+            .map(|k| ImuSample { t: k as f64 * dt, w_imu_rad_s: Vector3::z() * 0.1, f_imu_m_s2: None })
+            .collect();
+        let sigma = 3f64.to_radians();
+        let gapped = InsErrors { imu_gap_s: 5.0 * dt, gap_rate_walk_rad_s_sqrt_s: sigma, ..errors() };
+        let quiet_errors = InsErrors { gap_rate_walk_rad_s_sqrt_s: 0.0, ..gapped };
+        let att_var = |f: &InsFilter| f.covariance.fixed_view::<3, 3>(ATT, ATT).trace() / 3.0;
+        let run = |errors: InsErrors, times: &[f64]| {
+            let mut f = InsFilter::new(Turn::new().state(0.0), &init(), errors);
+            for &t in times {
+                f.propagate(t, &imu);
+            }
+            f
+        };
+        // Before the first sample (its interval reaches back to 0.99 s):
+        // sigma^2 tau^3 / 3 from the filter's start, in one call or in frames.
+        for times in [&[0.99][..], &[0.5, 0.99][..]] {
+            let added = att_var(&run(gapped, times)) - att_var(&run(quiet_errors, times));
+            let model = sigma * sigma * 0.99f64.powi(3) / 3.0;
+            assert!((added / model - 1.0).abs() < 0.01, "{times:?}: {added} against {model}");
+        }
+        // Inside the log, nothing more; after its last sample, from there.
+        let inside = att_var(&run(gapped, &[3.0])) - att_var(&run(quiet_errors, &[3.0]));
+        let after = att_var(&run(gapped, &[3.0, 4.0])) - att_var(&run(quiet_errors, &[3.0, 4.0]));
+        assert!(((after - inside) / (sigma * sigma / 3.0) - 1.0).abs() < 0.01, "{inside} {after}");
+        // Two states across it are no track pair (the turn is not measured).
+        let f = run(gapped, &[3.0, 4.0]);
+        assert!((f.gap_crossed_s - (0.99 + 1.0)).abs() < 1e-9, "{}", f.gap_crossed_s);
+        // Up to IMU_GAP_MAX_ANGLE_DEG per axis, however long.
+        let f = run(InsErrors { gap_rate_walk_rad_s_sqrt_s: 1.0, ..gapped }, &[3.0, 30.0]);
+        assert!((att_var(&f).sqrt().to_degrees() - IMU_GAP_MAX_ANGLE_DEG).abs() < 0.05);
     }
 
     #[test]

@@ -200,6 +200,10 @@ pub struct RunReport {
     /// Stretches of `imu.csv` without samples, longer than
     /// [`IMU_GAP_FACTOR`] times its median interval.
     pub imu_gaps: Vec<propagate::ImuGap>,
+    /// The frames' time before `imu.csv`'s first sample or after its last
+    /// (none when the log covers them): the attitude held, doubted as in a
+    /// gap from the log's edge.
+    pub imu_uncovered: Vec<propagate::ImuGap>,
     /// Samples of `imu.csv` beyond the sensors' range (`--gyro-range`,
     /// `--accel-range`), left out (`None`: none).
     pub imu_out_of_range: Option<OutOfRangeReport>,
@@ -439,6 +443,17 @@ pub fn run_flight(
         );
     }
     let imu_gaps = propagate::imu_gaps(nav.imu(), IMU_GAP_FACTOR);
+    let imu_uncovered = match (flight.frames.first(), flight.frames.last()) {
+        (Some(first), Some(last)) => propagate::uncovered(nav.imu(), first.t, last.t),
+        _ => Vec::new(),
+    };
+    for u in &imu_uncovered {
+        tracing::warn!(
+            "imu.csv has no sample from t {:.3} to {:.3} s, where the flight has frames: the attitude is held there, doubted as in a gap (--imu-gap-doubt), and the images alone find it",
+            u.from_t,
+            u.to_t
+        );
+    }
     if let Some(longest) = imu_gaps.iter().max_by(|a, b| (a.to_t - a.from_t).total_cmp(&(b.to_t - b.from_t)))
     {
         tracing::warn!(
@@ -545,6 +560,7 @@ pub fn run_flight(
         doubted_frames: nav.doubted_frames(),
         skipped_images: skipped,
         imu_gaps,
+        imu_uncovered,
         imu_out_of_range,
         gyro_jumps: nav.inertial().map_or(0, |f| f.gyro_jumps()),
         accel_jumps: nav.inertial().map_or(0, |f| f.accel_jumps()),

@@ -139,6 +139,25 @@ pub fn imu_gaps(imu: &[ImuSample], factor: f64) -> Vec<ImuGap> {
         .collect()
 }
 
+/// The parts of `[t0, t1]` (a flight's first and last frame) before the
+/// log's first sample or after its last (the first sample's interval taken
+/// as long as the second's, as [`for_each_segment`] does): all of it for an
+/// empty log.
+pub fn uncovered(imu: &[ImuSample], t0: f64, t1: f64) -> Vec<ImuGap> {
+    let (Some(first), Some(last)) = (imu.first(), imu.last()) else {
+        return if t1 >= t0 { vec![ImuGap { from_t: t0, to_t: t1 }] } else { Vec::new() };
+    };
+    let start = imu.get(1).map_or(first.t, |n| first.t - (n.t - first.t));
+    let mut out = Vec::new();
+    if t0 < start {
+        out.push(ImuGap { from_t: t0, to_t: start.min(t1) });
+    }
+    if t1 > last.t {
+        out.push(ImuGap { from_t: last.t.max(t0), to_t: t1 });
+    }
+    out
+}
+
 /// The measurement range of an IMU's sensors, per axis: a sample beyond it
 /// is no measurement (a corrupt record: a flipped bit in an exponent, a
 /// value from another unit), since a sensor at its limit reads the limit.
@@ -201,6 +220,21 @@ mod tests {
         assert!((gaps[0].from_t - 4.0).abs() < 1e-9 && (gaps[0].to_t - 7.0).abs() < 1e-9, "{gaps:?}");
         assert!((gaps[1].to_t - gaps[1].from_t - 0.03).abs() < 1e-6, "{gaps:?}");
         assert!(imu_gaps(&imu[..1], 5.0).is_empty());
+    }
+
+    #[test]
+    fn the_frames_time_outside_the_log_is_found() {
+        let imu = samples(100.0, 10.0, |_| Vector3::zeros());
+        // Covered: the first sample's interval reaches 10 ms before it.
+        assert!(uncovered(&imu, 0.0, 10.0).is_empty());
+        assert!(uncovered(&imu, -0.01, 10.0).is_empty());
+        let late: Vec<ImuSample> =
+            imu.iter().filter(|s| s.t >= 2.0 - 1e-9 && s.t <= 8.0 + 1e-9).copied().collect();
+        let u = uncovered(&late, 0.0, 10.0);
+        assert_eq!(u.len(), 2, "{u:?}");
+        assert!((u[0].from_t - 0.0).abs() < 1e-12 && (u[0].to_t - 1.99).abs() < 1e-9, "{u:?}");
+        assert!((u[1].from_t - 8.0).abs() < 1e-9 && (u[1].to_t - 10.0).abs() < 1e-12, "{u:?}");
+        assert_eq!(uncovered(&[], 1.0, 3.0), vec![ImuGap { from_t: 1.0, to_t: 3.0 }]);
     }
 
     #[test]

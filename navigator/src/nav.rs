@@ -373,7 +373,9 @@ pub struct FilterPose {
 }
 
 /// The least time over which a restart's drift from the filter's
-/// prediction is taken as a velocity error (s; [`Navigator::accept_ins`]).
+/// prediction is taken as a velocity error (s): a restart after a run of
+/// frames without a fix doubts the velocity by that drift over the time
+/// since the last fix.
 pub const RESTART_MIN_SPAN_S: f64 = 1.0;
 
 /// The default of [`NavParams::gyro_range_deg_s`].

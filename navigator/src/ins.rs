@@ -137,7 +137,9 @@ pub struct InsErrors {
     /// force are interpolated between the samples on either side, the
     /// velocity walks as without an accelerometer
     /// ([`Self::free_accel_m_s2_sqrt_s`]), and the attitude is doubted by
-    /// [`Self::gap_rate_walk_rad_s_sqrt_s`].
+    /// [`Self::gap_rate_walk_rad_s_sqrt_s`]. Time before the log's first
+    /// sample or after its last is crossed likewise, its attitude held
+    /// (`0`: neither; the attitude held, undoubted).
     pub imu_gap_s: f64,
     /// The unmeasured rate's departure from that interpolation through a
     /// gap, as a random walk (rad/s/sqrt(s)): `tau` seconds into the gap the
@@ -370,8 +372,9 @@ impl InsFilter {
     /// each accelerometer sample the specific force at its time, linearly
     /// interpolated in between). Time no sample covers (before the log's
     /// first sample, after its last) keeps the attitude fixed in inertial
-    /// space, doubted as in a gap from the log's edge, and the velocity as
-    /// it was, walking as without an accelerometer. An interval
+    /// space, doubted as in a gap from the log's edge where gaps are
+    /// recognised, and the velocity as it was, walking as without an
+    /// accelerometer. An interval
     /// longer than [`InsErrors::imu_gap_s`] is a gap: crossed on
     /// interpolated rates, the attitude doubted. `t1` before the state's
     /// time does nothing.
@@ -383,7 +386,11 @@ impl InsFilter {
         let mut acc = Accumulated::default();
         for_each_segment(imu, t0, t1, |a, b, sample| {
             let Some(k) = sample else {
-                self.outside_log(a, b, imu, &mut acc);
+                if self.errors.imu_gap_s > 0.0 {
+                    self.outside_log(a, b, imu, &mut acc);
+                } else {
+                    self.step(b - a, None, Force::Free, &mut acc);
+                }
                 return;
             };
             let (begin, end) = (if k > 0 { imu[k - 1].t } else { a }, imu[k].t);
@@ -453,9 +460,7 @@ impl InsFilter {
         let edge = after_log.map_or(self.t_start, |s| s.t);
         self.gyro_watch.restart(after_log.map(|s| s.w_imu_rad_s));
         self.accel_watch.restart(after_log.and_then(|s| s.f_imu_m_s2));
-        if self.errors.imu_gap_s > 0.0 {
-            self.gap_crossed_s += b - a;
-        }
+        self.gap_crossed_s += b - a;
         let steps = ((b - a) / GAP_STEP_S).ceil().max(1.0);
         let dt = (b - a) / steps;
         for i in 0..steps as usize {

@@ -184,8 +184,15 @@ pub fn within_range(imu: &[ImuSample], range: &ImuRange) -> Option<(Vec<ImuSampl
     if imu.iter().all(|s| range.holds(s)) {
         return None;
     }
-    let (kept, out): (Vec<ImuSample>, Vec<ImuSample>) = imu.iter().partition(|s| range.holds(s));
-    Some((kept, out.iter().map(|s| s.t).collect()))
+    let (mut kept, mut out) = (Vec::with_capacity(imu.len()), Vec::new());
+    for s in imu {
+        if range.holds(s) {
+            kept.push(*s);
+        } else {
+            out.push(s.t);
+        }
+    }
+    Some((kept, out))
 }
 
 #[cfg(test)]

@@ -334,7 +334,8 @@ struct NavigateArgs {
     /// Through a gap in imu.csv (an interval over 5 times its median), the
     /// doubt on the rate interpolated between the samples either side
     /// (deg/s/sqrt(s), a random walk; 0: none): the attitude's sigma grows as
-    /// DOUBT * sqrt(t^3 / 3) t seconds into the gap, up to 10 deg.
+    /// DOUBT * sqrt(t^3 / 3) t seconds into the gap, up to 10 deg. After the
+    /// log's end the rate is learnt from the fixes, walking by DOUBT.
     #[arg(long, default_value_t = 3.0)]
     imu_gap_doubt: f64,
     /// The gyro's measurement range per axis (deg/s): a sample beyond it is

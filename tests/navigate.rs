@@ -917,9 +917,9 @@ fn recovers_from_sensor_faults_and_bad_images() {
     let (from, to) = (gaps[0]["from_t"].as_f64().unwrap(), gaps[0]["to_t"].as_f64().unwrap());
     assert!((from - 2.0).abs() < 1e-6 && (to - 4.0).abs() < 1e-6, "{gaps:?}");
     assert!(log.contains("imu.csv: 1 gap"), "{log}");
-    // Crossed on rates interpolated between the samples either side, the
-    // attitude doubted as it goes: the frames in the gap search wide enough
-    // and fix (the sample after it taken as the mean rate through it lost
+    // Crossed on rates interpolated between the samples either side, their
+    // error a state that walks and the fixes learn: the frames in the gap
+    // search wide enough and fix (the sample after it taken as the mean rate through it lost
     // them, until the misses doubted the pose).
     assert!(r.iter().all(|x| x.1 == "fix"), "{r:?}");
     assert_eq!(report["doubted_frames"], 0, "{report}");
@@ -927,8 +927,9 @@ fn recovers_from_sensor_faults_and_bad_images() {
     assert!(worst < 250.0, "{worst:.1} m");
 
     // A log that ends before the images (a recorder full): after its last
-    // sample the attitude is held, doubted as in a gap, and the images
-    // alone find it (before, every frame after it was lost).
+    // sample the gyro's mean over its last second is carried on, its error
+    // learnt from the fixes (before the last stop, every frame after it was
+    // lost).
     let short = |f: &Path| edit_imu(f, |v| v[0] <= 5.0);
     let (report, r, worst, log) = run_changed("short-log", &short, &[]);
     let uncovered = report["imu_uncovered"].as_array().unwrap();

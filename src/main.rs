@@ -334,8 +334,9 @@ struct NavigateArgs {
     /// Through a gap in imu.csv (an interval over 5 times its median), the
     /// doubt on the rate interpolated between the samples either side
     /// (deg/s/sqrt(s), a random walk; 0: none): the attitude's sigma grows as
-    /// DOUBT * sqrt(t^3 / 3) t seconds into the gap, up to 10 deg. After the
-    /// log's end the rate is learnt from the fixes, walking by DOUBT.
+    /// DOUBT * sqrt(t^3 / 3) t seconds into the gap, up to 10 deg; the fixes
+    /// in the gap learn the rate. Likewise before the log's first sample
+    /// and after its last.
     #[arg(long, default_value_t = 3.0)]
     imu_gap_doubt: f64,
     /// The gyro's measurement range per axis (deg/s): a sample beyond it is

@@ -449,7 +449,7 @@ pub fn run_flight(
     };
     for u in &imu_uncovered {
         tracing::warn!(
-            "imu.csv has no sample from t {:.3} to {:.3} s, where the flight has frames: before the log the attitude is held, doubted as in a gap (--imu-gap-doubt); after it, turned at the gyro's mean over its last second, which the fixes then correct",
+            "imu.csv has no sample from t {:.3} to {:.3} s, where the flight has frames: the attitude turns there at no rate (before the log) or at the gyro's mean over its last second (after it), the fixes learning the rate's error (--imu-gap-doubt)",
             u.from_t,
             u.to_t
         );

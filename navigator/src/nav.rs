@@ -119,8 +119,8 @@ pub struct NavParams {
     /// rate interpolated between the samples either side, as a random walk
     /// (deg/s/sqrt(s); 0: none): the attitude's sigma grows as
     /// `sigma sqrt(tau^3 / 3)` `tau` seconds into the gap
-    /// ([`crate::ins::InsErrors::gap_rate_walk_rad_s_sqrt_s`]); after the
-    /// log's end, the walk of the rate the fixes learn.
+    /// ([`crate::ins::InsErrors::gap_rate_walk_rad_s_sqrt_s`]), the walk
+    /// of the rate the fixes learn (there, and before or after the log).
     pub imu_gap_doubt_deg_s_sqrt_s: f64,
     /// A specific force jump from one accelerometer sample to the next
     /// beyond this (m/s^2; 0: none) is doubted by the inertial filter

@@ -505,10 +505,7 @@ impl InsFilter {
         self.gyro_watch.restart(Some(after.w_imu_rad_s));
         self.accel_watch.restart(after.f_imu_m_s2);
         self.gap_crossed_s += b - a;
-        if self.bias_in_gap.is_none() {
-            self.flush(acc);
-            self.bias_in_gap = Some(self.gyro_bias_with_covariance());
-        }
+        self.keep_bias_aside(acc);
         let free = self.errors.free_accel_m_s2_sqrt_s.powi(2);
         let steps = ((b - a) / GAP_STEP_S).ceil().max(1.0);
         let dt = (b - a) / steps;
@@ -537,9 +534,8 @@ impl InsFilter {
     /// comes back at the log's first sample, [`Self::end_gap`]). After it,
     /// the gyro's mean over the log's last [`HELD_RATE_WINDOW_S`] is
     /// carried on likewise (the report keeps the gyro's bias as it was at
-    /// the log's end). The velocity walks as
-    /// without an accelerometer; the jump watches start again with the
-    /// log.
+    /// the log's end). The velocity walks as without an accelerometer;
+    /// the jump watches start again with the log.
     fn outside_log(&mut self, a: f64, b: f64, imu: &[ImuSample], acc: &mut Accumulated) {
         let after_log = imu.last().filter(|s| a >= s.t);
         self.gyro_watch.restart(after_log.map(|s| s.w_imu_rad_s));
@@ -550,9 +546,8 @@ impl InsFilter {
             self.flush(acc);
             self.bias_at_log_end = Some(self.gyro_bias_with_covariance());
         }
-        if after_log.is_none() && self.bias_in_gap.is_none() {
-            self.flush(acc);
-            self.bias_in_gap = Some(self.gyro_bias_with_covariance());
+        if after_log.is_none() {
+            self.keep_bias_aside(acc);
         }
         // Before the log no rate is known: none, its error learnt.
         let w = if after_log.is_some() { mean_rate(imu, HELD_RATE_WINDOW_S) } else { Vector3::zeros() };
@@ -564,9 +559,9 @@ impl InsFilter {
     }
 
     /// One step of `dt` at a rate no sample measured, `w` (interpolated
-    /// through a gap, carried on after the log's end, none before it). The bias state
-    /// stands for that rate's error meanwhile (the gyro's bias, kept aside
-    /// where it was: [`Self::end_gap`] and [`Self::gyro_bias_with_covariance`]),
+    /// through a gap, carried on after the log's end, none before it). The
+    /// bias state stands for that rate's error meanwhile (the gyro's bias
+    /// kept aside: [`Self::keep_bias_aside`], [`Self::end_gap`]),
     /// walking by [`InsErrors::gap_rate_walk_rad_s_sqrt_s`] up to
     /// [`HELD_RATE_MAX_DEG_S`]: `tau` into the stretch the attitude's
     /// variance has grown by `sigma^2 tau^3 / 3` (up to
@@ -585,6 +580,16 @@ impl InsFilter {
         // The rate's walk reaches the attitude at the next flush: each
         // step's, so the doubt is not a covariance step late.
         self.flush(acc);
+    }
+
+    /// At a stretch's start (a gap's, the filter's before the log): the
+    /// gyro's bias and its covariance are kept aside while the bias state
+    /// stands for the unmeasured rate's error ([`Self::rate_unmeasured`]).
+    fn keep_bias_aside(&mut self, acc: &mut Accumulated) {
+        if self.bias_in_gap.is_none() {
+            self.flush(acc);
+            self.bias_in_gap = Some(self.gyro_bias_with_covariance());
+        }
     }
 
     /// At a gap's end (or the log's first sample): the gyro's bias and its

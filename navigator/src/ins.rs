@@ -316,9 +316,6 @@ pub struct InsFilter {
     /// Time crossed in gaps of the IMU log so far (s): between two states
     /// whose values differ, the gyro did not measure all of the turn.
     pub gap_crossed_s: f64,
-    /// The state's time at the start: time before the IMU log's first
-    /// sample is a stretch without samples from here.
-    t_start: f64,
     /// Once the frames outlive the IMU log (and gaps are recognised): the
     /// gyro bias and its covariance at the log's end. From then on the
     /// bias state carries the body's rate instead (its negative, as a
@@ -433,7 +430,6 @@ impl InsFilter {
             gyro_watch: JumpWatch::default(),
             accel_watch: JumpWatch::default(),
             gap_crossed_s: 0.0,
-            t_start: state.t,
             bias_at_log_end: None,
             bias_in_gap: None,
         }
@@ -541,16 +537,20 @@ impl InsFilter {
         self.gyro_watch.restart(after_log.map(|s| s.w_imu_rad_s));
         self.accel_watch.restart(after_log.and_then(|s| s.f_imu_m_s2));
         self.gap_crossed_s += b - a;
-        if after_log.is_some() && self.bias_at_log_end.is_none() {
-            self.end_gap(acc);
-            self.flush(acc);
-            self.bias_at_log_end = Some(self.gyro_bias_with_covariance());
-        }
-        if after_log.is_none() {
-            self.keep_bias_aside(acc);
-        }
-        // Before the log no rate is known: none, its error learnt.
-        let w = if after_log.is_some() { mean_rate(imu, HELD_RATE_WINDOW_S) } else { Vector3::zeros() };
+        let w = match after_log {
+            Some(_) => {
+                if self.bias_at_log_end.is_none() {
+                    self.flush(acc);
+                    self.bias_at_log_end = Some(self.gyro_bias_with_covariance());
+                }
+                mean_rate(imu, HELD_RATE_WINDOW_S)
+            }
+            // Before the log no rate is known: none, its error learnt.
+            None => {
+                self.keep_bias_aside(acc);
+                Vector3::zeros()
+            }
+        };
         let steps = ((b - a) / GAP_STEP_S).ceil().max(1.0);
         let dt = (b - a) / steps;
         for _ in 0..steps as usize {

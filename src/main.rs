@@ -336,7 +336,8 @@ struct NavigateArgs {
     /// (deg/s/sqrt(s), a random walk; 0: none): the attitude's sigma grows as
     /// DOUBT * sqrt(t^3 / 3) t seconds into the gap, up to 10 deg; the fixes
     /// in the gap learn the rate. Likewise before the log's first sample
-    /// and after its last.
+    /// and after its last. (With --filter fixes, nothing learns the rate:
+    /// the attitude's doubt there grows from the stretch's start.)
     #[arg(long, default_value_t = 3.0)]
     imu_gap_doubt: f64,
     /// The gyro's measurement range per axis (deg/s): a sample beyond it is
@@ -369,7 +370,9 @@ struct NavigateArgs {
     /// How the matches meet the inertial sensors: `tight` (an inertial
     /// filter updated with each frame's matches), `loose` (updated with each
     /// frame's image-only pose) or `fixes` (no inertial filter: each
-    /// frame's pose is its own fix, the gyro carries the attitude).
+    /// frame's pose is its own fix, the gyro carries the attitude; the
+    /// navigator before the filter, for comparison: it doubts time without
+    /// IMU samples and runs of misses, not a sensor's jumps).
     #[arg(long, value_enum, default_value_t = FilterArg::Tight)]
     filter: FilterArg,
     /// Velocity uncertainty at the start (m/s, 1 sigma per axis; init.json

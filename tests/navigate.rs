@@ -821,7 +821,7 @@ fn edit_imu(flight: &Path, mut edit: impl FnMut(&mut [f64]) -> bool) {
 /// off; and 9 m/s^2 off for 19 s of a 20 s flight, which the map offset's
 /// restart catches), with its IMU silent for 2 s (from 2 s), with a log
 /// that ends at 5 s, with samples no sensor measures, and with unreadable
-/// images.
+/// images; the glitch, the gap and the short log also with `--filter fixes`.
 /// Before the navigator doubted a gyro's jumps and a run of frames whose
 /// matches did not agree, such a turn left it searching 3 deg from the
 /// landmarks for the rest of the flight (the full 60 s flight turned 5 deg:
@@ -876,6 +876,14 @@ fn recovers_from_sensor_faults_and_bad_images() {
     assert!(report["doubted_frames"].as_u64().unwrap() >= 1, "{report}");
     assert!(r.iter().rev().take(4).all(|x| x.1 == "fix"), "fixed again by the end: {r:?}");
     assert!(worst < 250.0, "no fix a navigator should not trust: {worst:.1} m");
+    // Without the inertial filter (`--filter fixes`, the navigator before
+    // it, which watches for no jump), the run of misses doubts the pose as
+    // well, and an acquisition found away from it is confirmed around its
+    // own pose (before, never: every frame after the turn was lost).
+    let (report, r, worst, _) = run_changed("glitch-fixes", &glitch, &["--filter", "fixes"]);
+    assert!(report["doubted_frames"].as_u64().unwrap() >= 1, "{report}");
+    assert!(r.iter().rev().take(4).all(|x| x.1 == "fix"), "fixed again by the end: {r:?}");
+    assert!(worst < 250.0, "{worst:.1} m");
 
     // The accelerometer 100 m/s^2 off for 1 s (a shock that saturated it):
     // the velocity it adds is doubted, so the fixes after correct it.
@@ -959,6 +967,13 @@ fn recovers_from_sensor_faults_and_bad_images() {
     assert_eq!(report["doubted_frames"], 0, "{report}");
     assert!(fixed_after(&r, 4.0) >= 8, "{r:?}");
     assert!(worst < 250.0, "{worst:.1} m");
+    // Without the inertial filter, the attitude is doubted through the gap
+    // as a rate walking from its start (before, the frames after the gap
+    // searched a degree from the landmarks, and one accepted fix was 3 km
+    // off).
+    let (_, r, worst, _) = run_changed("gap-fixes", &gap, &["--filter", "fixes"]);
+    assert!(r.iter().all(|x| x.1 == "fix"), "{r:?}");
+    assert!(worst < 250.0, "{worst:.1} m");
 
     // A log that ends before the images (a recorder full): after its last
     // sample the gyro's mean over its last second is carried on, its error
@@ -970,6 +985,11 @@ fn recovers_from_sensor_faults_and_bad_images() {
     assert_eq!(uncovered.len(), 1, "{report}");
     assert!((uncovered[0]["from_t"].as_f64().unwrap() - 5.0).abs() < 1e-6, "{uncovered:?}");
     assert!(log.contains("imu.csv has no sample from t 5.000 to 10.000 s"), "{log}");
+    assert!(r.iter().all(|x| x.1 == "fix"), "{r:?}");
+    assert!(worst < 250.0, "{worst:.1} m");
+    // Likewise without the inertial filter, the attitude doubted from the
+    // log's end (before, every frame after it was lost).
+    let (_, r, worst, _) = run_changed("short-log-fixes", &short, &["--filter", "fixes"]);
     assert!(r.iter().all(|x| x.1 == "fix"), "{r:?}");
     assert!(worst < 250.0, "{worst:.1} m");
 

@@ -22,8 +22,9 @@ use crate::attitude::{AttitudeFilter, GyroErrors};
 use crate::calibration::{CalibrationFilter, CalibrationParams, CarriedIntrinsics};
 use crate::image::{GreyImage, Pyramid, UndistortLut};
 use crate::ins::{InsErrors, InsFilter, InsInit, InsState, IntrinsicsSensitivity, FOCAL};
+use crate::ins::{HELD_RATE_MAX_DEG_S, IMU_GAP_MAX_ANGLE_DEG};
 use crate::predict::{predict, Predicted};
-use crate::propagate::propagate_with_bias;
+use crate::propagate::{propagate_with_bias, unmeasured_attitude_variance};
 use crate::track::{track_update, TrackAnchor, TrackParams, TrackPoint};
 use trn_view::footprint::{footprint, Footprint, FootprintParams};
 use trn_view::DbLevel;
@@ -42,7 +43,11 @@ pub enum FilterMode {
     Loose,
     /// No inertial filter: each frame's PnP pose is the output; the gyro
     /// carries the attitude between frames ([`crate::attitude`]) and the
-    /// velocity is the slope of the last fixes.
+    /// velocity is the slope of the last fixes. Time no gyro sample
+    /// measures doubts the attitude
+    /// ([`crate::propagate::unmeasured_attitude_variance`]), a run of misses
+    /// the pose, as the inertial filter's; a sensor's jumps are not watched
+    /// for.
     Fixes,
 }
 
@@ -121,6 +126,8 @@ pub struct NavParams {
     /// `sigma sqrt(tau^3 / 3)` `tau` seconds into the gap
     /// ([`crate::ins::InsErrors::gap_rate_walk_rad_s_sqrt_s`]), the walk
     /// of the rate the fixes learn (there, and before or after the log).
+    /// With [`FilterMode::Fixes`], whose fixes learn no rate, the walk from
+    /// the stretch's start ([`crate::propagate::unmeasured_attitude_variance`]).
     pub imu_gap_doubt_deg_s_sqrt_s: f64,
     /// A specific force jump from one accelerometer sample to the next
     /// beyond this (m/s^2; 0: none) is doubted by the inertial filter
@@ -419,6 +426,11 @@ pub struct Navigator<'a> {
     last_fix: Option<(f64, CameraPose)>,
     /// The initial guess: the first fix's height reference.
     init_h: HeightReference,
+    /// The interval between IMU samples beyond which the log has a gap
+    /// (0: fewer than two samples): for [`FilterMode::Fixes`]'s attitude
+    /// doubt where no sample measures the rate (the inertial filter has its
+    /// own, [`InsErrors::imu_gap_s`]).
+    imu_gap_s: f64,
     /// Accepted fix positions of the last [`VELOCITY_WINDOW_S`] (time, ECEF).
     recent_fixes: std::collections::VecDeque<(f64, Vector3<f64>)>,
     /// Velocity (ECEF, m/s) and its 1-sigma error; `None` before the fixes
@@ -806,6 +818,7 @@ impl<'a> Navigator<'a> {
         let principal_prior = params.calibration.filter(|c| {
             params.filter == FilterMode::Tight && params.inertial_principal_point && !c.principal_point
         });
+        let imu_gap_s = crate::propagate::gap_limit_s(&imu, crate::IMU_GAP_FACTOR).unwrap_or(0.0);
         let ins = (params.filter != FilterMode::Fixes && params.use_gyro).then(|| {
             let q_imu_cam = camera.q_cam_imu().inverse();
             let state = InsState {
@@ -847,7 +860,7 @@ impl<'a> Navigator<'a> {
                     principal_walk_px_sqrt_s: principal_prior.map_or(0.0, |c| c.principal_walk_px_sqrt_s),
                     gyro_max_jump_rad_s: deg_s(params.gyro_max_jump_deg_s),
                     accel_max_jump_m_s2: params.accel_max_jump_m_s2,
-                    imu_gap_s: crate::propagate::gap_limit_s(&imu, crate::IMU_GAP_FACTOR).unwrap_or(0.0),
+                    imu_gap_s,
                     gap_rate_walk_rad_s_sqrt_s: deg_s(params.imu_gap_doubt_deg_s_sqrt_s),
                 },
             )
@@ -884,6 +897,7 @@ impl<'a> Navigator<'a> {
             params,
             last_fix: None,
             init_h,
+            imu_gap_s,
             recent_fixes: Default::default(),
             velocity_sigma: None,
             velocity: Vector3::zeros(),
@@ -945,7 +959,8 @@ impl<'a> Navigator<'a> {
         let (guess, attitude) = if self.params.use_gyro {
             let q_ecef_imu = self.pose.q_ecef_cam * self.q_imu_cam.inverse();
             let p = propagate_with_bias(q_ecef_imu, self.t, t, &self.imu, &self.filter.bias_imu_rad_s);
-            let cov = self.filter.propagated(&p.bias_to_attitude, dt);
+            let mut cov = self.filter.propagated(&p.bias_to_attitude, dt);
+            self.doubt_unmeasured(&mut cov, t);
             (CameraPose::new(position, p.q_ecef_imu * self.q_imu_cam), cov)
         } else {
             // Without the gyro the attitude is only known at fixes.
@@ -958,6 +973,35 @@ impl<'a> Navigator<'a> {
         };
         let att_cov = attitude.fixed_view::<3, 3>(0, 0).into_owned();
         Prediction { guess, att_cov, sigma_m, pose_cov: None, filter: Carried::Attitude(attitude) }
+    }
+
+    /// [`FilterMode::Fixes`]: the attitude doubt (`cov`'s attitude block,
+    /// rad²) of the time since the last frame no gyro sample measures (a
+    /// gap, before the log's first sample or after its last;
+    /// [`unmeasured_attitude_variance`], the rate's error walking by
+    /// `--imu-gap-doubt` up to [`HELD_RATE_MAX_DEG_S`]), up to
+    /// [`IMU_GAP_MAX_ANGLE_DEG`] per axis (a larger doubt, after misses,
+    /// stays). Without it, the 30 km oblique balloon with its IMU silent for
+    /// 3 s (`scripts/bench_faults.sh`) came out of the gap 2 deg off with a
+    /// search sized for a tenth of that, and fixed 24 of 121 frames.
+    fn doubt_unmeasured(&self, cov: &mut Matrix6<f64>, t: f64) {
+        let v = unmeasured_attitude_variance(
+            &self.imu,
+            self.t,
+            t,
+            self.init_h.t,
+            self.imu_gap_s,
+            self.params.imu_gap_doubt_deg_s_sqrt_s.to_radians(),
+            HELD_RATE_MAX_DEG_S.to_radians(),
+        );
+        if !(v > 0.0) {
+            return;
+        }
+        let cap = IMU_GAP_MAX_ANGLE_DEG.to_radians().powi(2);
+        for i in 0..3 {
+            let before = cov[(i, i)];
+            cov[(i, i)] = (before + v).min(before.max(cap));
+        }
     }
 
     /// The camera for a frame at `t`: the calibration's estimate, with the
@@ -1172,21 +1216,27 @@ impl<'a> Navigator<'a> {
     /// since it ([`Self::count_miss`]: frames whose matches did not agree)
     /// say the filter's pose may be wrong by more than it claims (an IMU
     /// glitch or gap turned the attitude), and each further miss doubts it
-    /// (`missed`: this frame was one). Either way the inertial filter's pose uncertainty doubles
-    /// (not the velocity's: the next fix then restarts the pose and doubts
-    /// the velocity by how far the prediction had drifted from it since the
-    /// last fix, [`RESTART_MIN_SPAN_S`]), so the search widens frame by frame up to an
+    /// (`missed`: this frame was one). Either way the inertial filter's
+    /// pose uncertainty doubles (not the velocity's: the next fix then
+    /// restarts the pose and doubts the velocity by how far the prediction
+    /// had drifted from it since the last fix, [`RESTART_MIN_SPAN_S`]);
+    /// without it ([`FilterMode::Fixes`]) the attitude's and the guess's
+    /// position sigmas double ([`Self::inflate_guess_within`]). The search
+    /// widens frame by frame up to an
     /// acquisition (a guess 3 km off, told 300 m, is fixed on its third
     /// frame), up to sigmas of [`DOUBT_MAX_ATTITUDE_DEG`] and
     /// [`DOUBT_MAX_POSITION_M`].
     fn doubt_prediction(&mut self, t: f64, filter: &mut Carried, missed: bool) {
-        let Carried::Ins(f) = filter else { return };
         let after_fix = self.last_fix.is_some();
         if after_fix && !(missed && self.misses >= DOUBT_AFTER_MISSES) {
             return;
         }
-        let (k_att, k_pos) =
-            f.inflate_pose_within(2.0, DOUBT_MAX_ATTITUDE_DEG.to_radians(), DOUBT_MAX_POSITION_M);
+        let (k_att, k_pos) = match filter {
+            Carried::Ins(f) => {
+                f.inflate_pose_within(2.0, DOUBT_MAX_ATTITUDE_DEG.to_radians(), DOUBT_MAX_POSITION_M)
+            }
+            Carried::Attitude(cov) => self.inflate_guess_within(cov, 2.0),
+        };
         if !after_fix {
             debug!("t {t:.3}: no fix yet: the guess's uncertainty grows (attitude x{k_att:.2}, position x{k_pos:.2})");
         } else {
@@ -1263,6 +1313,26 @@ impl<'a> Navigator<'a> {
     /// attitude and position sigmas).
     pub fn doubted_frames(&self) -> usize {
         self.doubted_frames
+    }
+
+    /// [`FilterMode::Fixes`]: the pose's doubt after misses
+    /// ([`Self::doubt_prediction`]): the attitude sigmas (`cov`, the
+    /// attitude filter's carried covariance) and the position's
+    /// (`sigma_m`) by `factor`, up to [`DOUBT_MAX_ATTITUDE_DEG`] and
+    /// [`DOUBT_MAX_POSITION_M`]; the factors applied.
+    fn inflate_guess_within(&mut self, cov: &mut Matrix6<f64>, factor: f64) -> (f64, f64) {
+        let bounded =
+            |sigma: f64, max: f64| if sigma > 0.0 { (max / sigma).clamp(1.0, factor) } else { factor };
+        let worst = (0..3).map(|i| cov[(i, i)]).fold(0.0, f64::max).sqrt();
+        let k_att = bounded(worst, DOUBT_MAX_ATTITUDE_DEG.to_radians());
+        for i in 0..6 {
+            for j in 0..6 {
+                cov[(i, j)] *= if i < 3 { k_att } else { 1.0 } * if j < 3 { k_att } else { 1.0 };
+            }
+        }
+        let k_pos = bounded(self.sigma_m, DOUBT_MAX_POSITION_M);
+        self.sigma_m *= k_pos;
+        (k_att, k_pos)
     }
 
     /// The pose to report for a frame without an accepted fix.
@@ -1641,6 +1711,8 @@ impl<'a> Navigator<'a> {
         attitude: &Matrix6<f64>,
         sol: &Solution,
     ) -> Matrix6<f64> {
+        // A doubted pose ([`Self::doubt_prediction`]) is confirmed.
+        self.guess_doubted = false;
         self.recent_fixes.push_back((t, sol.pose.position.0));
         while self.recent_fixes.front().is_some_and(|f| t - f.0 > VELOCITY_WINDOW_S) {
             self.recent_fixes.pop_front();
@@ -2035,23 +2107,43 @@ impl<'a> Navigator<'a> {
     }
 
     /// The prediction that searches around a tiled acquisition `c`: its pose
-    /// carried to `t` by the filter's rotation and velocity since, its
-    /// uncertainty the acquisition's plus the velocity's over the interval;
-    /// `None` without the inertial filter.
+    /// carried to `t` by the filter's rotation and velocity since (without
+    /// the inertial filter, [`FilterMode::Fixes`]: by the gyro and the
+    /// fixes' velocity), its uncertainty the acquisition's plus the
+    /// velocity's over the interval. (Without it, `--filter fixes` never
+    /// confirmed an acquisition: the 30 km oblique balloon turned 5 deg in
+    /// 20 ms found the landmarks every other frame and fixed none of the
+    /// 100 frames after.)
     fn candidate_prediction(&self, t: f64, pred: &Prediction, c: Candidate) -> Option<Prediction> {
         let Candidate { t: t0, pose, sigma_m: sigma0_m } = c;
-        let Carried::Ins(f) = &pred.filter else { return None };
-        let before = self.ins.as_ref()?;
         let dt = (t - t0).max(0.0);
-        // The filter's own attitude change and velocity (its position is
-        // the doubted guess's; its motion is the IMU's).
-        let turn = f.state.q_ecef_imu * before.state.q_ecef_imu.inverse();
-        let (v, v_cov) = f.velocity();
-        let guess = CameraPose::new(trn_geodesy::Ecef(pose.position.0 + v * dt), turn * pose.q_ecef_cam);
-        // (Frames of doubt before it may have inflated the filter's velocity
-        // uncertainty without bound: at most the initial guess's.)
-        let v_var = v_cov.trace().min(3.0 * self.params.init_velocity_sigma_m_s.powi(2));
-        let sigma_m = (sigma0_m.powi(2) + v_var * dt * dt).sqrt();
+        let (guess, sigma_m) = match &pred.filter {
+            Carried::Ins(f) => {
+                let before = self.ins.as_ref()?;
+                // The filter's own attitude change and velocity (its position is
+                // the doubted guess's; its motion is the IMU's).
+                let turn = f.state.q_ecef_imu * before.state.q_ecef_imu.inverse();
+                let (v, v_cov) = f.velocity();
+                let guess =
+                    CameraPose::new(trn_geodesy::Ecef(pose.position.0 + v * dt), turn * pose.q_ecef_cam);
+                // (Frames of doubt before it may have inflated the filter's velocity
+                // uncertainty without bound: at most the initial guess's.)
+                let v_var = v_cov.trace().min(3.0 * self.params.init_velocity_sigma_m_s.powi(2));
+                (guess, (sigma0_m.powi(2) + v_var * dt * dt).sqrt())
+            }
+            Carried::Attitude(_) => {
+                let q_ecef_cam = if self.params.use_gyro {
+                    let q_ecef_imu = pose.q_ecef_cam * self.q_imu_cam.inverse();
+                    let p = propagate_with_bias(q_ecef_imu, t0, t, &self.imu, &self.filter.bias_imu_rad_s);
+                    p.q_ecef_imu * self.q_imu_cam
+                } else {
+                    pose.q_ecef_cam
+                };
+                let v_sigma = self.velocity_sigma.unwrap_or(self.params.velocity_sigma_m_s);
+                let position = trn_geodesy::Ecef(pose.position.0 + self.velocity * dt);
+                (CameraPose::new(position, q_ecef_cam), sigma0_m + v_sigma * dt)
+            }
+        };
         let att_sigma = (pred.att_cov.trace() / 3.0).sqrt().min(1f64.to_radians());
         Some(Prediction {
             guess,

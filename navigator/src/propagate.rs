@@ -107,6 +107,46 @@ pub fn propagate_with_bias(
     Propagated { q_ecef_imu: earth * q_ecef_imu * body, bias_to_attitude: sens }
 }
 
+/// The attitude variance (rad², about any axis) that the parts of
+/// `[t0, t1]` no gyro sample measures add, for a navigator that carries no
+/// rate of its own (`--filter fixes`): through a gap (an interval between
+/// samples longer than `gap_s`; 0: none recognised), after the log's last
+/// sample, and before its first (from `t_first`, the flight's first frame).
+/// The rate carried there ([`propagate_with_bias`]: the sample after a gap,
+/// none outside the log) is taken as off by a random walk of
+/// `walk_rad_s_sqrt_s` from the stretch's start, up to `rate_cap_rad_s`:
+/// over `[a, b]` of a stretch that began at `s`, the angle `∫ w dt` of a
+/// rate error `w` walking from zero at `s` has the variance
+/// `σ² (a − s)(b − a)² + σ² (b − a)³ / 3` (independent increments), the
+/// first term's rate variance capped.
+pub fn unmeasured_attitude_variance(
+    imu: &[ImuSample],
+    t0: f64,
+    t1: f64,
+    t_first: f64,
+    gap_s: f64,
+    walk_rad_s_sqrt_s: f64,
+    rate_cap_rad_s: f64,
+) -> f64 {
+    let q = walk_rad_s_sqrt_s * walk_rad_s_sqrt_s;
+    if !(q > 0.0) || imu.is_empty() {
+        return 0.0;
+    }
+    let mut var = 0.0;
+    let mut add = |a: f64, b: f64, s: f64| {
+        let d = b - a;
+        let rate_var = (q * (a - s).max(0.0)).min(rate_cap_rad_s * rate_cap_rad_s);
+        var += rate_var * d * d + q * d * d * d / 3.0;
+    };
+    for_each_segment(imu, t0, t1, |a, b, sample| match sample {
+        Some(k) if k > 0 && gap_s > 0.0 && imu[k].t - imu[k - 1].t > gap_s => add(a, b, imu[k - 1].t),
+        Some(_) => {}
+        None if a >= imu[imu.len() - 1].t => add(a, b, imu[imu.len() - 1].t),
+        None => add(a, b, t_first.min(a)),
+    });
+    var
+}
+
 /// A stretch of the IMU log without samples.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
 pub struct ImuGap {
@@ -242,6 +282,75 @@ mod tests {
         assert!((u[0].from_t - 0.0).abs() < 1e-12 && (u[0].to_t - 1.99).abs() < 1e-9, "{u:?}");
         assert!((u[1].from_t - 8.0).abs() < 1e-9 && (u[1].to_t - 10.0).abs() < 1e-12, "{u:?}");
         assert_eq!(uncovered(&[], 1.0, 3.0), vec![ImuGap { from_t: 1.0, to_t: 3.0 }]);
+    }
+
+    /// The angle variance of a rate error walking from zero at `s`, over
+    /// `[a, b]`, by simulation (a fixed-seed Gaussian walk in 1 ms steps).
+    fn walked_angle_variance(s: f64, a: f64, b: f64, sigma: f64, paths: usize) -> f64 {
+        let mut seed = 0x2545_f491_4f6c_dd1du64;
+        let mut uniform = || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            ((seed >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+        };
+        let dt = 1e-3;
+        let steps = ((b - s) / dt).round() as usize;
+        let first = ((a - s) / dt).round() as usize;
+        let mut sum2 = 0.0;
+        for _ in 0..paths {
+            let (mut w, mut angle) = (0.0, 0.0);
+            for k in 0..steps {
+                let g = (-2.0 * uniform().ln()).sqrt() * (std::f64::consts::TAU * uniform()).cos();
+                // The rate over the step is its mean: half the step's walk.
+                let dw = sigma * dt.sqrt() * g;
+                if k >= first {
+                    angle += (w + 0.5 * dw) * dt;
+                }
+                w += dw;
+            }
+            sum2 += angle * angle;
+        }
+        sum2 / paths as f64
+    }
+
+    #[test]
+    fn time_no_sample_measures_doubts_the_attitude_as_a_walking_rate() {
+        let sigma = 3f64.to_radians();
+        let q = sigma * sigma;
+        let cap = 30f64.to_radians();
+        let near = |got: f64, want: f64| (got - want).abs() <= 1e-9 * want.max(1e-12);
+        // 100 Hz from 2 s to 10 s, silent from 4 to 6 s (a gap at 5x).
+        let mut imu = samples(100.0, 10.0, |_| Vector3::zeros());
+        imu.retain(|x| x.t >= 2.0 - 1e-9 && !(x.t > 4.0 + 1e-9 && x.t < 6.0 - 1e-9));
+        let gap = gap_limit_s(&imu, 5.0).unwrap();
+        let var = |t0: f64, t1: f64| unmeasured_attitude_variance(&imu, t0, t1, 0.0, gap, sigma, cap);
+        // Measured throughout: nothing.
+        assert_eq!(var(6.5, 9.5), 0.0);
+        // In the gap, 0.5 s after its start, for 1 s: the rate's walk so
+        // far over the second, and its walk within it.
+        assert!(near(var(4.5, 5.5), q * 0.5 + q / 3.0), "{}", var(4.5, 5.5));
+        // Across the gap's end, only the gap's part counts.
+        assert!(near(var(5.5, 7.0), q * 1.5 * 0.25 + q * 0.125 / 3.0), "{}", var(5.5, 7.0));
+        // After the log's end (10 s), from its end.
+        assert!(near(var(9.5, 11.0), q / 3.0), "{}", var(9.5, 11.0));
+        assert!(near(var(12.0, 12.5), q * 2.0 * 0.25 + q * 0.125 / 3.0), "{}", var(12.0, 12.5));
+        // Before its first sample (its interval from 1.99 s), from the
+        // flight's first frame (0 s).
+        assert!(near(var(1.0, 1.5), q * 0.25 + q * 0.125 / 3.0), "{}", var(1.0, 1.5));
+        // The rate's variance is capped: 30 deg/s, 100 s after the log.
+        let late = var(110.0, 110.5);
+        assert!(near(late, cap * cap * 0.25 + q * 0.125 / 3.0), "{late}");
+        // Not recognised (no gap limit), a gap is crossed as measured.
+        assert_eq!(unmeasured_attitude_variance(&imu, 4.5, 5.5, 0.0, 0.0, sigma, cap), 0.0);
+        assert_eq!(unmeasured_attitude_variance(&imu, 9.5, 11.0, 0.0, gap, 0.0, cap), 0.0);
+        // The formula against a simulated walk (2000 paths: 3% at 1 sigma).
+        for (s, a, b) in [(0.0, 0.5, 1.0), (0.0, 0.0, 0.8)] {
+            let sim = walked_angle_variance(s, a, b, sigma, 2000);
+            let d = b - a;
+            let model = q * (a - s) * d * d + q * d * d * d / 3.0;
+            assert!((sim / model - 1.0).abs() < 0.1, "{s} {a} {b}: simulated {sim:.3e}, model {model:.3e}");
+        }
     }
 
     #[test]

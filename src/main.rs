@@ -321,8 +321,9 @@ struct NavigateArgs {
     #[arg(long, default_value_t = 20.0)]
     gyro_bias: f64,
     /// A gyro rate that jumps by more than this from one sample to the next
-    /// (deg/s; 0: never) is doubted by the inertial filter: the angle it turns
-    /// beyond the rate before widens the attitude's uncertainty.
+    /// (deg/s; 0: never) is doubted (by the inertial filter, or with
+    /// --filter fixes by the attitude's): the angle it turns beyond the rate
+    /// before widens the attitude's uncertainty.
     #[arg(long, default_value_t = 10.0)]
     gyro_max_jump: f64,
     /// A specific force that jumps by more than this from one accelerometer
@@ -372,7 +373,8 @@ struct NavigateArgs {
     /// frame's image-only pose) or `fixes` (no inertial filter: each
     /// frame's pose is its own fix, the gyro carries the attitude; the
     /// navigator before the filter, for comparison: it doubts time without
-    /// IMU samples and runs of misses, not a sensor's jumps).
+    /// IMU samples, the gyro's jumps and runs of misses, and reads no
+    /// accelerometer).
     #[arg(long, value_enum, default_value_t = FilterArg::Tight)]
     filter: FilterArg,
     /// Velocity uncertainty at the start (m/s, 1 sigma per axis; init.json

@@ -821,7 +821,8 @@ fn edit_imu(flight: &Path, mut edit: impl FnMut(&mut [f64]) -> bool) {
 /// off; and 9 m/s^2 off for 19 s of a 20 s flight, which the map offset's
 /// restart catches), with its IMU silent for 2 s (from 2 s), with a log
 /// that ends at 5 s, with samples no sensor measures, and with unreadable
-/// images; the glitch, the gap and the short log also with `--filter fixes`.
+/// images; the glitch (watched, and not), the gap and the short log also
+/// with `--filter fixes`.
 /// Before the navigator doubted a gyro's jumps and a run of frames whose
 /// matches did not agree, such a turn left it searching 3 deg from the
 /// landmarks for the rest of the flight (the full 60 s flight turned 5 deg:
@@ -877,10 +878,16 @@ fn recovers_from_sensor_faults_and_bad_images() {
     assert!(r.iter().rev().take(4).all(|x| x.1 == "fix"), "fixed again by the end: {r:?}");
     assert!(worst < 250.0, "no fix a navigator should not trust: {worst:.1} m");
     // Without the inertial filter (`--filter fixes`, the navigator before
-    // it, which watches for no jump), the run of misses doubts the pose as
-    // well, and an acquisition found away from it is confirmed around its
-    // own pose (before, never: every frame after the turn was lost).
+    // it), the jump is doubted as well, and every frame fixes; not watched
+    // for, the run of misses doubts the pose, and an acquisition found away
+    // from it is confirmed around its own pose (before, neither: every
+    // frame after the turn was lost).
     let (report, r, worst, _) = run_changed("glitch-fixes", &glitch, &["--filter", "fixes"]);
+    assert_eq!(report["gyro_jumps"], 1, "{report}");
+    assert!(r.iter().all(|x| x.1 == "fix"), "{r:?}");
+    assert!(worst < 250.0, "{worst:.1} m");
+    let (report, r, worst, _) =
+        run_changed("glitch-fixes-unwatched", &glitch, &["--filter", "fixes", "--gyro-max-jump", "0"]);
     assert!(report["doubted_frames"].as_u64().unwrap() >= 1, "{report}");
     assert!(r.iter().rev().take(4).all(|x| x.1 == "fix"), "fixed again by the end: {r:?}");
     assert!(worst < 250.0, "{worst:.1} m");

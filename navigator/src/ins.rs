@@ -203,14 +203,14 @@ pub const ACCEL_JUMP_MAX_M_S: f64 = 100.0;
 /// longest time; meanwhile the integral of the values beyond the one before
 /// (an angle, a velocity) is what the filter doubts.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
-struct JumpWatch {
+pub(crate) struct JumpWatch {
     /// The last sample's value.
     last: Option<Vector3<f64>>,
     /// The jump being doubted: the value before it, the integral beyond it
     /// so far (its norm, capped), and its duration so far (s).
     jump: Option<(Vector3<f64>, f64, f64)>,
     /// Jumps seen so far.
-    count: usize,
+    pub(crate) count: usize,
 }
 
 impl JumpWatch {
@@ -218,7 +218,7 @@ impl JumpWatch {
     /// once per segment of its interval; the jump is judged once per sample,
     /// when the value changes). Returns the value beyond the one before the
     /// jump (its axis) and the variance to add along it, while a jump lasts.
-    fn watch(
+    pub(crate) fn watch(
         &mut self,
         x: &Vector3<f64>,
         dt: f64,
@@ -250,7 +250,7 @@ impl JumpWatch {
     }
 
     /// Forgets the samples before (after a gap in the log).
-    fn restart(&mut self, x: Option<Vector3<f64>>) {
+    pub(crate) fn restart(&mut self, x: Option<Vector3<f64>>) {
         self.jump = None;
         self.last = x;
     }

@@ -207,7 +207,8 @@ pub struct RunReport {
     /// Samples of `imu.csv` beyond the sensors' range (`--gyro-range`,
     /// `--accel-range`), left out (`None`: none).
     pub imu_out_of_range: Option<OutOfRangeReport>,
-    /// Gyro rate jumps the inertial filter doubted (`--gyro-max-jump`).
+    /// Gyro rate jumps doubted (`--gyro-max-jump`): by the inertial filter,
+    /// or without it (`--filter fixes`) in the attitude's prediction.
     pub gyro_jumps: usize,
     /// Accelerometer jumps the inertial filter doubted (`--accel-max-jump`).
     pub accel_jumps: usize,
@@ -562,7 +563,7 @@ pub fn run_flight(
         imu_gaps,
         imu_uncovered,
         imu_out_of_range,
-        gyro_jumps: nav.inertial().map_or(0, |f| f.gyro_jumps()),
+        gyro_jumps: nav.gyro_jumps(),
         accel_jumps: nav.inertial().map_or(0, |f| f.accel_jumps()),
         map_doubts: nav.map_doubts(),
         map_chi2_max: nav.map_chi2_max(),

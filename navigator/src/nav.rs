@@ -22,9 +22,11 @@ use crate::attitude::{AttitudeFilter, GyroErrors};
 use crate::calibration::{CalibrationFilter, CalibrationParams, CarriedIntrinsics};
 use crate::image::{GreyImage, Pyramid, UndistortLut};
 use crate::ins::{InsErrors, InsFilter, InsInit, InsState, IntrinsicsSensitivity, FOCAL};
-use crate::ins::{HELD_RATE_MAX_DEG_S, IMU_GAP_MAX_ANGLE_DEG};
+use crate::ins::{
+    JumpWatch, GYRO_JUMP_MAX_ANGLE_DEG, GYRO_JUMP_MAX_S, HELD_RATE_MAX_DEG_S, IMU_GAP_MAX_ANGLE_DEG,
+};
 use crate::predict::{predict, Predicted};
-use crate::propagate::{propagate_with_bias, unmeasured_attitude_variance};
+use crate::propagate::{for_each_segment, propagate_with_bias, unmeasured_attitude_variance};
 use crate::track::{track_update, TrackAnchor, TrackParams, TrackPoint};
 use trn_view::footprint::{footprint, Footprint, FootprintParams};
 use trn_view::DbLevel;
@@ -45,9 +47,9 @@ pub enum FilterMode {
     /// carries the attitude between frames ([`crate::attitude`]) and the
     /// velocity is the slope of the last fixes. Time no gyro sample
     /// measures doubts the attitude
-    /// ([`crate::propagate::unmeasured_attitude_variance`]), a run of misses
-    /// the pose, as the inertial filter's; a sensor's jumps are not watched
-    /// for.
+    /// ([`crate::propagate::unmeasured_attitude_variance`]), a gyro's jump
+    /// its angle, a run of misses the pose, as the inertial filter's; the
+    /// accelerometer is not read.
     Fixes,
 }
 
@@ -117,7 +119,8 @@ pub struct NavParams {
     pub gyro_bias_walk_deg_s_sqrt_s: f64,
     /// A gyro rate jump from one sample to the next beyond this (deg/s; 0:
     /// none) is doubted by the inertial filter
-    /// ([`crate::ins::InsErrors::gyro_max_jump_rad_s`]).
+    /// ([`crate::ins::InsErrors::gyro_max_jump_rad_s`]), or without it
+    /// ([`FilterMode::Fixes`]) in the attitude's prediction.
     pub gyro_max_jump_deg_s: f64,
     /// Through a gap in the IMU log (an interval over
     /// [`crate::IMU_GAP_FACTOR`] times the log's median), the doubt on the
@@ -453,6 +456,8 @@ pub struct Navigator<'a> {
     map_doubts: usize,
     /// The largest map offset chi-square an accepted fix found.
     map_chi2_max: f64,
+    /// [`FilterMode::Fixes`]: the gyro's jumps doubted ([`Self::doubt_jumps`]).
+    own_gyro_jumps: usize,
     /// Misses since the last accepted fix ([`Self::count_miss`]).
     misses: usize,
     /// Frames whose miss, after a fix, grew the doubt
@@ -524,6 +529,9 @@ struct Prediction {
     /// `att_cov` and `sigma_m` added.
     pose_cov: Option<Matrix6<f64>>,
     filter: Carried,
+    /// [`FilterMode::Fixes`]: the gyro's jumps doubted since the last
+    /// frame ([`Navigator::doubt_jumps`]; the inertial filter counts its own).
+    gyro_jumps: usize,
 }
 
 /// The filter carried to a frame (one per frame, moved by value: the size
@@ -907,6 +915,7 @@ impl<'a> Navigator<'a> {
             guess_doubted: false,
             map_doubts: 0,
             map_chi2_max: 0.0,
+            own_gyro_jumps: 0,
             misses: 0,
             doubted_frames: 0,
             pool,
@@ -948,6 +957,7 @@ impl<'a> Navigator<'a> {
                 sigma_m: (across2 + along2 * tan_corner2).sqrt().max(2.0),
                 pose_cov: Some(cov),
                 filter: Carried::Ins(f),
+                gyro_jumps: 0,
             };
         }
         let dt = t - self.t;
@@ -956,12 +966,13 @@ impl<'a> Navigator<'a> {
         // gap (unknown before two fixes).
         let v_sigma = self.velocity_sigma.unwrap_or(self.params.velocity_sigma_m_s);
         let sigma_m = self.sigma_m + v_sigma * dt.max(0.0);
-        let (guess, attitude) = if self.params.use_gyro {
+        let (guess, attitude, gyro_jumps) = if self.params.use_gyro {
             let q_ecef_imu = self.pose.q_ecef_cam * self.q_imu_cam.inverse();
             let p = propagate_with_bias(q_ecef_imu, self.t, t, &self.imu, &self.filter.bias_imu_rad_s);
             let mut cov = self.filter.propagated(&p.bias_to_attitude, dt);
             self.doubt_unmeasured(&mut cov, t);
-            (CameraPose::new(position, p.q_ecef_imu * self.q_imu_cam), cov)
+            let jumps = self.doubt_jumps(&mut cov, t, &q_ecef_imu);
+            (CameraPose::new(position, p.q_ecef_imu * self.q_imu_cam), cov, jumps)
         } else {
             // Without the gyro the attitude is only known at fixes.
             let mut cov = self.filter.covariance;
@@ -969,10 +980,58 @@ impl<'a> Navigator<'a> {
             for i in 0..3 {
                 cov[(i, i)] += grow;
             }
-            (CameraPose::new(position, self.pose.q_ecef_cam), cov)
+            (CameraPose::new(position, self.pose.q_ecef_cam), cov, 0)
         };
         let att_cov = attitude.fixed_view::<3, 3>(0, 0).into_owned();
-        Prediction { guess, att_cov, sigma_m, pose_cov: None, filter: Carried::Attitude(attitude) }
+        Prediction {
+            guess,
+            att_cov,
+            sigma_m,
+            pose_cov: None,
+            filter: Carried::Attitude(attitude),
+            gyro_jumps,
+        }
+    }
+
+    /// [`FilterMode::Fixes`]: the gyro's jumps between the last frame and
+    /// `t` (`--gyro-max-jump`, as the inertial filter watches them,
+    /// [`crate::ins::InsErrors::gyro_max_jump_rad_s`]): the angle each
+    /// turns beyond the rate before it, for [`GYRO_JUMP_MAX_S`] at most and
+    /// up to [`GYRO_JUMP_MAX_ANGLE_DEG`], is added to `cov`'s attitude
+    /// variance along its axis (ECEF, through `q_ecef_imu`, the attitude at
+    /// the last frame). The watch starts from the sample before the last
+    /// frame, and again after a gap. Returns the jumps seen.
+    fn doubt_jumps(&self, cov: &mut Matrix6<f64>, t: f64, q_ecef_imu: &UnitQuaternion<f64>) -> usize {
+        let limit = self.params.gyro_max_jump_deg_s.to_radians();
+        if !(limit > 0.0) || !(t > self.t) {
+            return 0;
+        }
+        let imu = &self.imu[..];
+        let mut watch = JumpWatch::default();
+        let mut first = true;
+        let cap = GYRO_JUMP_MAX_ANGLE_DEG.to_radians();
+        for_each_segment(imu, self.t, t, |a, b, sample| {
+            let Some(k) = sample else { return };
+            let after_gap = k > 0 && self.imu_gap_s > 0.0 && imu[k].t - imu[k - 1].t > self.imu_gap_s;
+            if after_gap {
+                watch.restart(Some(imu[k].w_imu_rad_s));
+                first = false;
+                return;
+            }
+            if first {
+                watch.restart(k.checked_sub(1).map(|j| imu[j].w_imu_rad_s));
+                first = false;
+            }
+            if let Some((beyond, added)) =
+                watch.watch(&imu[k].w_imu_rad_s, b - a, limit, GYRO_JUMP_MAX_S, cap)
+            {
+                if let Some(axis) = (q_ecef_imu * beyond).try_normalize(1e-12) {
+                    let mut att = cov.fixed_view_mut::<3, 3>(0, 0);
+                    att += axis * axis.transpose() * added;
+                }
+            }
+        });
+        watch.count
     }
 
     /// [`FilterMode::Fixes`]: the attitude doubt (`cov`'s attitude block,
@@ -1282,6 +1341,12 @@ impl<'a> Navigator<'a> {
         &self.imu_out_of_range
     }
 
+    /// The gyro's jumps doubted (`--gyro-max-jump`): the inertial filter's,
+    /// or without it ([`FilterMode::Fixes`]) the navigator's own.
+    pub fn gyro_jumps(&self) -> usize {
+        self.ins.as_ref().map_or(self.own_gyro_jumps, |f| f.gyro_jumps())
+    }
+
     /// Fixes after which the map offset was restarted ([`MAP_DOUBT_CHI2`]).
     pub fn map_doubts(&self) -> usize {
         self.map_doubts
@@ -1527,6 +1592,7 @@ impl<'a> Navigator<'a> {
         let start = Instant::now();
         self.update_camera(t);
         let pred = self.predict(t);
+        self.own_gyro_jumps += pred.gyro_jumps;
         self.carry(t, pred);
         NavRecord {
             pose: TimedPose {
@@ -1546,6 +1612,7 @@ impl<'a> Navigator<'a> {
         let start = Instant::now();
         self.update_camera(t);
         let pred = self.predict(t);
+        self.own_gyro_jumps += pred.gyro_jumps;
         // A tiled acquisition of the frame before: this frame searches
         // around it, and a fix there confirms it (an acquisition: the
         // filter restarts from it); else the tiles go on.
@@ -2151,6 +2218,7 @@ impl<'a> Navigator<'a> {
             sigma_m,
             pose_cov: None,
             filter: pred.filter.clone(),
+            gyro_jumps: 0,
         })
     }
 

@@ -351,6 +351,18 @@ fn mean_rate(imu: &[ImuSample], window_s: f64) -> Vector3<f64> {
     }
 }
 
+/// The factor a doubt scales a `sigma` by: `factor`, or less where that
+/// would take it beyond `max` (never under 1: a doubt only grows, and one
+/// already beyond `max` stays).
+pub(crate) fn doubt_factor(sigma: f64, max: f64, factor: f64) -> f64 {
+    let factor = factor.max(1.0);
+    if sigma > 0.0 {
+        (max / sigma).clamp(1.0, factor)
+    } else {
+        factor
+    }
+}
+
 /// [`IMU_GAP_MAX_ANGLE_DEG`] as a variance (rad^2).
 fn gap_cap_variance() -> f64 {
     IMU_GAP_MAX_ANGLE_DEG.to_radians().powi(2)
@@ -1182,12 +1194,8 @@ impl InsFilter {
     ) -> (f64, f64) {
         let worst =
             |s: &Self, at: usize| (at..at + 3).map(|i| s.covariance[(i, i)]).fold(0.0, f64::max).sqrt();
-        // (A factor under 1 scales nothing: a doubt only grows.)
-        let factor = factor.max(1.0);
-        let bounded =
-            |sigma: f64, max: f64| if sigma > 0.0 { (max / sigma).clamp(1.0, factor) } else { factor };
-        let k_att = bounded(worst(self, ATT), max_attitude_rad);
-        let k_pos = bounded(worst(self, POS), max_position_m);
+        let k_att = doubt_factor(worst(self, ATT), max_attitude_rad, factor);
+        let k_pos = doubt_factor(worst(self, POS), max_position_m, factor);
         let mut d = SMatrix::<f64, N, 1>::repeat(1.0);
         for i in 0..3 {
             d[ATT + i] = k_att;

@@ -21,10 +21,11 @@ use trn_vision::ransac::{ransac_p3p, RansacParams};
 use crate::attitude::{AttitudeFilter, GyroErrors};
 use crate::calibration::{CalibrationFilter, CalibrationParams, CarriedIntrinsics};
 use crate::image::{GreyImage, Pyramid, UndistortLut};
-use crate::ins::{InsErrors, InsFilter, InsInit, InsState, IntrinsicsSensitivity, FOCAL};
 use crate::ins::{
-    JumpWatch, GYRO_JUMP_MAX_ANGLE_DEG, GYRO_JUMP_MAX_S, HELD_RATE_MAX_DEG_S, IMU_GAP_MAX_ANGLE_DEG,
+    doubt_factor, JumpWatch, GYRO_JUMP_MAX_ANGLE_DEG, GYRO_JUMP_MAX_S, HELD_RATE_MAX_DEG_S,
+    IMU_GAP_MAX_ANGLE_DEG,
 };
+use crate::ins::{InsErrors, InsFilter, InsInit, InsState, IntrinsicsSensitivity, FOCAL};
 use crate::predict::{predict, Predicted};
 use crate::propagate::{for_each_segment, propagate_with_bias, unmeasured_attitude_variance};
 use crate::track::{track_update, TrackAnchor, TrackParams, TrackPoint};
@@ -1386,16 +1387,14 @@ impl<'a> Navigator<'a> {
     /// (`sigma_m`) by `factor`, up to [`DOUBT_MAX_ATTITUDE_DEG`] and
     /// [`DOUBT_MAX_POSITION_M`]; the factors applied.
     fn inflate_guess_within(&mut self, cov: &mut Matrix6<f64>, factor: f64) -> (f64, f64) {
-        let bounded =
-            |sigma: f64, max: f64| if sigma > 0.0 { (max / sigma).clamp(1.0, factor) } else { factor };
         let worst = (0..3).map(|i| cov[(i, i)]).fold(0.0, f64::max).sqrt();
-        let k_att = bounded(worst, DOUBT_MAX_ATTITUDE_DEG.to_radians());
+        let k_att = doubt_factor(worst, DOUBT_MAX_ATTITUDE_DEG.to_radians(), factor);
         for i in 0..6 {
             for j in 0..6 {
                 cov[(i, j)] *= if i < 3 { k_att } else { 1.0 } * if j < 3 { k_att } else { 1.0 };
             }
         }
-        let k_pos = bounded(self.sigma_m, DOUBT_MAX_POSITION_M);
+        let k_pos = doubt_factor(self.sigma_m, DOUBT_MAX_POSITION_M, factor);
         self.sigma_m *= k_pos;
         (k_att, k_pos)
     }

@@ -77,7 +77,7 @@ use trn_geodesy::gravity::{gravitation_gradient, gravity_ecef};
 use trn_geodesy::{Ecef, EARTH_RATE_RAD_S};
 use trn_vision::pnp::rotation_vector;
 
-use crate::propagate::{for_each_segment, strapdown_increment};
+use crate::propagate::{ends_gap, for_each_segment, strapdown_increment};
 
 /// Dimension of the error state.
 pub const N: usize = 25;
@@ -475,7 +475,7 @@ impl InsFilter {
                 return;
             };
             let (begin, end) = (if k > 0 { imu[k - 1].t } else { a }, imu[k].t);
-            if k > 0 && self.errors.imu_gap_s > 0.0 && end - begin > self.errors.imu_gap_s {
+            if ends_gap(imu, k, self.errors.imu_gap_s) {
                 self.cross_gap(a, b, &imu[k - 1], &imu[k], &mut acc);
                 return;
             }

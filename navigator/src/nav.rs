@@ -27,7 +27,7 @@ use crate::ins::{
 };
 use crate::ins::{InsErrors, InsFilter, InsInit, InsState, IntrinsicsSensitivity, FOCAL};
 use crate::predict::{predict, Predicted};
-use crate::propagate::{for_each_segment, propagate_with_bias, unmeasured_attitude_variance};
+use crate::propagate::{ends_gap, for_each_segment, propagate_with_bias, unmeasured_attitude_variance};
 use crate::track::{track_update, TrackAnchor, TrackParams, TrackPoint};
 use trn_view::footprint::{footprint, Footprint, FootprintParams};
 use trn_view::DbLevel;
@@ -1013,8 +1013,7 @@ impl<'a> Navigator<'a> {
         let cap = GYRO_JUMP_MAX_ANGLE_DEG.to_radians();
         for_each_segment(imu, self.t, t, |a, b, sample| {
             let Some(k) = sample else { return };
-            let after_gap = k > 0 && self.imu_gap_s > 0.0 && imu[k].t - imu[k - 1].t > self.imu_gap_s;
-            if after_gap {
+            if ends_gap(imu, k, self.imu_gap_s) {
                 watch.restart(Some(imu[k].w_imu_rad_s));
                 first = false;
                 return;

@@ -139,12 +139,18 @@ pub fn unmeasured_attitude_variance(
         var += rate_var * d * d + q * d * d * d / 3.0;
     };
     for_each_segment(imu, t0, t1, |a, b, sample| match sample {
-        Some(k) if k > 0 && gap_s > 0.0 && imu[k].t - imu[k - 1].t > gap_s => add(a, b, imu[k - 1].t),
+        Some(k) if ends_gap(imu, k, gap_s) => add(a, b, imu[k - 1].t),
         Some(_) => {}
         None if a >= imu[imu.len() - 1].t => add(a, b, imu[imu.len() - 1].t),
         None => add(a, b, t_first.min(a)),
     });
     var
+}
+
+/// Whether sample `k` of `imu` ends a gap: its interval is longer than
+/// `gap_s` ([`gap_limit_s`]; 0: no gap recognised).
+pub fn ends_gap(imu: &[ImuSample], k: usize, gap_s: f64) -> bool {
+    k > 0 && gap_s > 0.0 && imu[k].t - imu[k - 1].t > gap_s
 }
 
 /// A stretch of the IMU log without samples.

@@ -8,7 +8,8 @@
 # gyro's x of the first sample after T0 and the accelerometer's x of the
 # next), or a log that ends at T (end:T) or starts there (start:T). Prints, per case, the fixes, the mean and worst error of the fixes,
 # the error at the last frame, the farthest fix in its own sigmas, and what
-# the run report says: gyro and accelerometer jumps doubted, map offsets
+# the run report says: gyro and accelerometer jumps doubted, fixes found
+# with the gyro's jumps undone (a glitch, not a turn), map offsets
 # restarted, frames doubted after a run of misses, IMU gaps, IMU samples
 # left out as beyond the sensors' range, the frames' time the log does not
 # cover (s); results in OUT/faults/results.md.
@@ -102,14 +103,14 @@ worst = max(fixes) if fixes else float('nan')
 gaps = len(report.get('imu_gaps', []))
 farthest = e.get('consistency', {}).get('max_sigma_distance')
 farthest = f"{farthest:.1f}" if farthest is not None else "n/a"
-print(f"| {sys.argv[3]} | {len(fixes)} of {len(fr)} | {mean:.1f} | {worst:.1f} | {fr[-1]['error']['pos_m']:.1f} | {farthest} | {report.get('gyro_jumps', 'n/a')} | {report.get('accel_jumps', 'n/a')} | {report.get('map_doubts', 'n/a')} | {report.get('doubted_frames', 'n/a')} | {gaps} | {out} | {uncovered} |")
+print(f"| {sys.argv[3]} | {len(fixes)} of {len(fr)} | {mean:.1f} | {worst:.1f} | {fr[-1]['error']['pos_m']:.1f} | {farthest} | {report.get('gyro_jumps', 'n/a')} | {report.get('gyro_jumps_undone', 'n/a')} | {report.get('accel_jumps', 'n/a')} | {report.get('map_doubts', 'n/a')} | {report.get('doubted_frames', 'n/a')} | {gaps} | {out} | {uncovered} |")
 PY
 )")
 done
 {
   echo "Sensor faults: $name, default database"
   echo
-  echo "| case | fixes | mean m | worst m | last frame's error m | farthest fix (sigma) | gyro jumps doubted | accelerometer jumps doubted | map offsets restarted | frames doubted | IMU gaps reported | IMU samples left out | frames' time without IMU (s) |"
-  echo "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+  echo "| case | fixes | mean m | worst m | last frame's error m | farthest fix (sigma) | gyro jumps doubted | fixes with them undone | accelerometer jumps doubted | map offsets restarted | frames doubted | IMU gaps reported | IMU samples left out | frames' time without IMU (s) |"
+  echo "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
   printf '%s\n' "${rows[@]}"
 } | tee "$work/results.md"

@@ -323,7 +323,9 @@ struct NavigateArgs {
     /// A gyro rate that jumps by more than this from one sample to the next
     /// (deg/s; 0: never) is doubted (by the inertial filter, or with
     /// --filter fixes by the attitude's): the angle it turns beyond the rate
-    /// before widens the attitude's uncertainty.
+    /// before widens the attitude's uncertainty (up to 10 deg), and a frame
+    /// that does not fix after it is searched again with the turn undone
+    /// (a glitch, not a turn; the report's gyro_jumps_undone).
     #[arg(long, default_value_t = 10.0)]
     gyro_max_jump: f64,
     /// A specific force that jumps by more than this from one accelerometer
@@ -834,6 +836,12 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
             "{} gyro rate jump(s) beyond {} deg/s from one sample to the next: the angle each turned was doubted (--gyro-max-jump)",
             report.gyro_jumps,
             a.gyro_max_jump
+        );
+    }
+    if report.gyro_jumps_undone > 0 {
+        tracing::warn!(
+            "{} fix(es) found with the gyro's jumps since the fix before undone: the image saw the camera where it was before them (a glitch, not a turn)",
+            report.gyro_jumps_undone
         );
     }
     if report.map_doubts > 0 {

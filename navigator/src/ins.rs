@@ -179,9 +179,10 @@ pub const HELD_RATE_WINDOW_S: f64 = 1.0;
 /// the one before is a turn the platform made.
 pub const GYRO_JUMP_MAX_S: f64 = 0.5;
 
-/// The most a gyro jump is doubted (deg, 1 sigma): beyond, the frames that
-/// then do not fix widen the search (the navigator's doubt after a run of
-/// misses). Measured on the 30 km nadir balloon turned 30 deg in 20 ms:
+/// The most a gyro jump is doubted (deg, 1 sigma): beyond, a frame that
+/// then does not fix is searched again with the jump's turn undone
+/// ([`JumpTurn`]), and the frames that still do not fix widen the search
+/// (the navigator's doubt after a run of misses). Measured on the 30 km nadir balloon turned 30 deg in 20 ms:
 /// doubted in full, 92 of its 121 frames fixed; within 10 deg, 115 (20 deg:
 /// 114 and 116).
 pub const GYRO_JUMP_MAX_ANGLE_DEG: f64 = 10.0;
@@ -256,6 +257,32 @@ impl JumpWatch {
     }
 }
 
+/// The gyro's jumps since the last accepted fix, as turned: the angle
+/// beyond the rate before each, for as long as each lasted, uncapped
+/// (the doubt is capped at [`GYRO_JUMP_MAX_ANGLE_DEG`]). Were they glitches,
+/// the attitude is `exp(-turn_ecef_rad)` times the one carried (a turn
+/// about ECEF axes stays one as the body turns on): the navigator's other
+/// hypothesis when a frame does not fix after a jump (see
+/// `Navigator::jump_undone_prediction`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct JumpTurn {
+    /// The first jump's time (s): the accelerometer's force has been
+    /// turned with the attitude since.
+    pub since_t: f64,
+    /// The turns added up (rad, ECEF rotation vector).
+    pub turn_ecef_rad: Vector3<f64>,
+}
+
+impl JumpTurn {
+    /// `turn` (rad, ECEF) at `t` added to `record`.
+    pub(crate) fn add(record: &mut Option<JumpTurn>, t: f64, turn: Vector3<f64>) {
+        match record {
+            Some(r) => r.turn_ecef_rad += turn,
+            None => *record = Some(JumpTurn { since_t: t, turn_ecef_rad: turn }),
+        }
+    }
+}
+
 /// Initial uncertainty (1 sigma per axis).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct InsInit {
@@ -313,6 +340,9 @@ pub struct InsFilter {
     gyro_watch: JumpWatch,
     /// The accelerometer's jumps (m/s^2, IMU frame, bias included).
     accel_watch: JumpWatch,
+    /// The gyro's jumps since the navigator last cleared them (at each
+    /// accepted fix): what undoing them as glitches takes back.
+    pub jump_turn: Option<JumpTurn>,
     /// Time crossed in gaps of the IMU log so far (s): between two states
     /// whose values differ, the gyro did not measure all of the turn.
     pub gap_crossed_s: f64,
@@ -441,6 +471,7 @@ impl InsFilter {
             principal_error_px: Vector2::zeros(),
             gyro_watch: JumpWatch::default(),
             accel_watch: JumpWatch::default(),
+            jump_turn: None,
             gap_crossed_s: 0.0,
             bias_at_log_end: None,
             bias_in_gap: None,
@@ -480,7 +511,7 @@ impl InsFilter {
                 return;
             }
             self.end_gap(&mut acc);
-            self.watch_gyro(&imu[k].w_imu_rad_s, b - a, &mut acc);
+            self.watch_gyro(&imu[k].w_imu_rad_s, a, b - a, &mut acc);
             if let Some(f) = &imu[k].f_imu_m_s2 {
                 self.watch_accel(f, b - a, &mut acc);
             }
@@ -629,13 +660,16 @@ impl InsFilter {
     /// it was wrong (an unreported 2-4 deg turn otherwise leaves the search
     /// sized for a small fraction of a degree, and chance matches around the
     /// wrong prediction can then agree).
-    fn watch_gyro(&mut self, w: &Vector3<f64>, dt: f64, acc: &mut Accumulated) {
+    /// The turn beyond the rate before is also added up, uncapped, in
+    /// [`Self::jump_turn`] (from `t`, the segment's start).
+    fn watch_gyro(&mut self, w: &Vector3<f64>, t: f64, dt: f64, acc: &mut Accumulated) {
         let limit = self.errors.gyro_max_jump_rad_s;
         if !(limit > 0.0) {
             return;
         }
         let cap = GYRO_JUMP_MAX_ANGLE_DEG.to_radians();
         if let Some((beyond, added)) = self.gyro_watch.watch(w, dt, limit, GYRO_JUMP_MAX_S, cap) {
+            JumpTurn::add(&mut self.jump_turn, t, self.state.q_ecef_imu * beyond * dt);
             self.doubt_along(ATT, &beyond, added, acc);
         }
     }
@@ -1567,6 +1601,23 @@ mod tests {
         assert!((along - 3.0).abs() < 0.1, "along {along} deg");
         assert!(across < 0.1, "across {across} deg");
         assert!(err.norm() < 1.5 * along.to_radians(), "the error within its doubt");
+        // The turn is kept, uncapped, in ECEF: undone, the attitude is the
+        // truth's again (to the turn's own dynamics over 20 ms).
+        let undone_error = |f: &InsFilter| {
+            let j = f.jump_turn.expect("a jump's turn");
+            assert!((j.since_t - 10.0).abs() < 0.01, "{j:?}");
+            let state = InsState {
+                q_ecef_imu: UnitQuaternion::from_scaled_axis(-j.turn_ecef_rad) * f.state.q_ecef_imu,
+                ..f.state
+            };
+            (
+                j.turn_ecef_rad.norm().to_degrees(),
+                error9(&state, &turn.at(12.0)).fixed_rows::<3>(0).norm().to_degrees(),
+            )
+        };
+        let (turned, left) = undone_error(&f);
+        assert!((turned - 3.0).abs() < 0.01 && left < 0.01, "turned {turned} deg, left {left} deg");
+        assert_eq!(smooth.jump_turn, None);
         // Off (0), the same glitch leaves the attitude's sigma as without it
         // (but for the jump's own turn of the dynamics).
         let off = run(errors(), &imu, 12.0);
@@ -1587,6 +1638,10 @@ mod tests {
         let p = f.covariance.fixed_view::<3, 3>(ATT, ATT);
         let along = (axis.transpose() * p * axis)[0].sqrt().to_degrees();
         assert!((along - GYRO_JUMP_MAX_ANGLE_DEG).abs() < 0.2, "{along}");
+        // Its turn is kept whole (undone to within the turn's own dynamics
+        // over the 20 ms, 0.1 deg).
+        let (turned, left) = undone_error(&f);
+        assert!((turned - 40.0).abs() < 0.1 && left < 0.1, "turned {turned} deg, left {left} deg");
     }
 
     #[test]

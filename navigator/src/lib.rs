@@ -210,6 +210,10 @@ pub struct RunReport {
     /// Gyro rate jumps doubted (`--gyro-max-jump`): by the inertial filter,
     /// or without it (`--filter fixes`) in the attitude's prediction.
     pub gyro_jumps: usize,
+    /// Fixes found with the gyro's jumps since the fix before undone, as
+    /// glitches, after the frame's own search did not stand (see
+    /// `trn navigate`, When the sensors fail).
+    pub gyro_jumps_undone: usize,
     /// Accelerometer jumps the inertial filter doubted (`--accel-max-jump`).
     pub accel_jumps: usize,
     /// Fixes after which the inertial filter's map offset, estimated beyond
@@ -564,6 +568,7 @@ pub fn run_flight(
         imu_uncovered,
         imu_out_of_range,
         gyro_jumps: nav.gyro_jumps(),
+        gyro_jumps_undone: nav.gyro_jumps_undone(),
         accel_jumps: nav.inertial().map_or(0, |f| f.accel_jumps()),
         map_doubts: nav.map_doubts(),
         map_chi2_max: nav.map_chi2_max(),

@@ -22,7 +22,7 @@ use crate::attitude::{AttitudeFilter, GyroErrors};
 use crate::calibration::{CalibrationFilter, CalibrationParams, CarriedIntrinsics};
 use crate::image::{GreyImage, Pyramid, UndistortLut};
 use crate::ins::{
-    doubt_factor, JumpWatch, GYRO_JUMP_MAX_ANGLE_DEG, GYRO_JUMP_MAX_S, HELD_RATE_MAX_DEG_S,
+    doubt_factor, JumpTurn, JumpWatch, GYRO_JUMP_MAX_ANGLE_DEG, GYRO_JUMP_MAX_S, HELD_RATE_MAX_DEG_S,
     IMU_GAP_MAX_ANGLE_DEG,
 };
 use crate::ins::{InsErrors, InsFilter, InsInit, InsState, IntrinsicsSensitivity, FOCAL};
@@ -459,6 +459,11 @@ pub struct Navigator<'a> {
     map_chi2_max: f64,
     /// [`FilterMode::Fixes`]: the gyro's jumps doubted ([`Self::doubt_jumps`]).
     own_gyro_jumps: usize,
+    /// [`FilterMode::Fixes`]: the gyro's jumps since the last accepted fix,
+    /// as turned (the inertial filter keeps its own, [`InsFilter::jump_turn`]).
+    own_jump_turn: Option<JumpTurn>,
+    /// Fixes found with the gyro's jumps undone ([`Self::jump_undone_prediction`]).
+    jumps_undone: usize,
     /// Misses since the last accepted fix ([`Self::count_miss`]).
     misses: usize,
     /// Frames whose miss, after a fix, grew the doubt
@@ -506,6 +511,18 @@ pub struct Navigator<'a> {
     tile_landmarks: std::cell::Cell<Option<usize>>,
 }
 
+/// What an accepted fix that restarts the inertial filter's pose knows of
+/// the time since the last one, for its velocity's doubt.
+#[derive(Clone, Copy, Debug)]
+struct SinceFix {
+    /// Seconds since the last accepted fix (`None`: none yet).
+    fix_s: Option<f64>,
+    /// The velocity (m/s) the gyro's jumps, undone for this fix, added to
+    /// the accelerometer's force since the first of them
+    /// ([`turned_force_velocity`]; 0 when none were undone).
+    turned_force_m_s: f64,
+}
+
 /// An acquisition found in a tile away from the guess, held for the next
 /// frame to confirm ([`Rejection::Unconfirmed`]).
 #[derive(Clone, Copy, Debug)]
@@ -533,6 +550,8 @@ struct Prediction {
     /// [`FilterMode::Fixes`]: the gyro's jumps doubted since the last
     /// frame ([`Navigator::doubt_jumps`]; the inertial filter counts its own).
     gyro_jumps: usize,
+    /// The gyro's jumps since the last accepted fix, as turned.
+    jump_turn: Option<JumpTurn>,
 }
 
 /// The filter carried to a frame (one per frame, moved by value: the size
@@ -689,6 +708,22 @@ const ACQUISITION_ALONG_SIGHT_STEP: f64 = 0.45;
 /// recovering; with it 115 and 113 of the 121 frames
 /// (`scripts/bench_faults.sh`).
 const DOUBT_AFTER_MISSES: usize = 4;
+
+/// The least turn (deg) of the gyro's jumps since the last fix for which a
+/// frame that does not fix is searched again with them undone
+/// ([`Navigator::jump_undone_prediction`]): smaller ones the jump's own
+/// doubt covers (1-10 deg glitches fixed every frame of the realistic
+/// flights; `scripts/bench_faults.sh`).
+const JUMP_UNDO_MIN_DEG: f64 = 1.0;
+
+/// How long after the first of the gyro's jumps since the last fix a frame
+/// that does not fix is searched again with them undone (s): undone later,
+/// the force the accelerometer measured meanwhile, turned by them, has
+/// moved the position too far for the search around the guess (a 30 deg
+/// glitch on a balloon: 4.9 m/s^2 across, 61 m after 5 s), and the frames
+/// then only cost twice their search; the run of misses' doubt
+/// ([`DOUBT_AFTER_MISSES`]) goes on from there.
+const JUMP_UNDO_WITHIN_S: f64 = 5.0;
 
 /// The largest attitude sigma (deg, any axis) that frames without a first
 /// fix grow the guess's doubt to: 2.5 sigmas then span the widest field
@@ -917,6 +952,8 @@ impl<'a> Navigator<'a> {
             map_doubts: 0,
             map_chi2_max: 0.0,
             own_gyro_jumps: 0,
+            own_jump_turn: None,
+            jumps_undone: 0,
             misses: 0,
             doubted_frames: 0,
             pool,
@@ -957,6 +994,7 @@ impl<'a> Navigator<'a> {
                 att_cov: cov.fixed_view::<3, 3>(0, 0).into_owned(),
                 sigma_m: (across2 + along2 * tan_corner2).sqrt().max(2.0),
                 pose_cov: Some(cov),
+                jump_turn: f.jump_turn,
                 filter: Carried::Ins(f),
                 gyro_jumps: 0,
             };
@@ -967,12 +1005,13 @@ impl<'a> Navigator<'a> {
         // gap (unknown before two fixes).
         let v_sigma = self.velocity_sigma.unwrap_or(self.params.velocity_sigma_m_s);
         let sigma_m = self.sigma_m + v_sigma * dt.max(0.0);
+        let mut jump_turn = self.own_jump_turn;
         let (guess, attitude, gyro_jumps) = if self.params.use_gyro {
             let q_ecef_imu = self.pose.q_ecef_cam * self.q_imu_cam.inverse();
             let p = propagate_with_bias(q_ecef_imu, self.t, t, &self.imu, &self.filter.bias_imu_rad_s);
             let mut cov = self.filter.propagated(&p.bias_to_attitude, dt);
             self.doubt_unmeasured(&mut cov, t);
-            let jumps = self.doubt_jumps(&mut cov, t, &q_ecef_imu);
+            let jumps = self.doubt_jumps(&mut cov, t, &q_ecef_imu, &mut jump_turn);
             (CameraPose::new(position, p.q_ecef_imu * self.q_imu_cam), cov, jumps)
         } else {
             // Without the gyro the attitude is only known at fixes.
@@ -991,6 +1030,7 @@ impl<'a> Navigator<'a> {
             pose_cov: None,
             filter: Carried::Attitude(attitude),
             gyro_jumps,
+            jump_turn,
         }
     }
 
@@ -1001,8 +1041,15 @@ impl<'a> Navigator<'a> {
     /// up to [`GYRO_JUMP_MAX_ANGLE_DEG`], is added to `cov`'s attitude
     /// variance along its axis (ECEF, through `q_ecef_imu`, the attitude at
     /// the last frame). The watch starts from the sample before the last
-    /// frame, and again after a gap. Returns the jumps seen.
-    fn doubt_jumps(&self, cov: &mut Matrix6<f64>, t: f64, q_ecef_imu: &UnitQuaternion<f64>) -> usize {
+    /// frame, and again after a gap. The turns, uncapped, are added to
+    /// `turned`. Returns the jumps seen.
+    fn doubt_jumps(
+        &self,
+        cov: &mut Matrix6<f64>,
+        t: f64,
+        q_ecef_imu: &UnitQuaternion<f64>,
+        turned: &mut Option<JumpTurn>,
+    ) -> usize {
         let limit = self.params.gyro_max_jump_deg_s.to_radians();
         if !(limit > 0.0) || !(t > self.t) {
             return 0;
@@ -1025,6 +1072,7 @@ impl<'a> Navigator<'a> {
             if let Some((beyond, added)) =
                 watch.watch(&imu[k].w_imu_rad_s, b - a, limit, GYRO_JUMP_MAX_S, cap)
             {
+                JumpTurn::add(turned, a, q_ecef_imu * beyond * (b - a));
                 if let Some(axis) = (q_ecef_imu * beyond).try_normalize(1e-12) {
                     let mut att = cov.fixed_view_mut::<3, 3>(0, 0);
                     att += axis * axis.transpose() * added;
@@ -1347,6 +1395,12 @@ impl<'a> Navigator<'a> {
         self.ins.as_ref().map_or(self.own_gyro_jumps, |f| f.gyro_jumps())
     }
 
+    /// Fixes found with the gyro's jumps since the fix before undone
+    /// ([`Self::jump_undone_prediction`]).
+    pub fn gyro_jumps_undone(&self) -> usize {
+        self.jumps_undone
+    }
+
     /// Fixes after which the map offset was restarted ([`MAP_DOUBT_CHI2`]).
     pub fn map_doubts(&self) -> usize {
         self.map_doubts
@@ -1405,6 +1459,7 @@ impl<'a> Navigator<'a> {
                 self.sigma_m += self.params.velocity_sigma_m_s * (t - self.t).max(0.0);
                 self.filter.carry(attitude);
                 self.pose = pred.guess;
+                self.own_jump_turn = pred.jump_turn;
             }
             Carried::Ins(f) => {
                 self.pose = f.pose(&self.q_imu_cam).0;
@@ -1457,9 +1512,11 @@ impl<'a> Navigator<'a> {
         sol: &Solution,
         calibration_cov: Matrix6<f64>,
         sensitivity: &IntrinsicsSensitivity,
-        since_fix_s: Option<f64>,
+        since: SinceFix,
     ) -> Matrix6<f64> {
         let q = self.q_imu_cam;
+        // The next jumps are measured from this fix.
+        f.jump_turn = None;
         if let Some(gsd) = sol.median_gsd_m {
             let (m, deg) = map_sigmas_for_gsd(&self.params, gsd);
             let (was_m, was_rad) = f.map_sigmas();
@@ -1498,10 +1555,14 @@ impl<'a> Navigator<'a> {
                     // fix, is a velocity error the filter did not allow for
                     // (an accelerometer's error it trusted): its velocity is
                     // doubted as much, so the fixes after find it.
-                    let velocity_floor = since_fix_s.map_or(0.0, |dt| {
+                    // With the gyro's jumps undone, the force the
+                    // accelerometer measured was turned by them since the
+                    // first: the velocity is doubted by what that adds.
+                    let velocity_floor = since.fix_s.map_or(0.0, |dt| {
                         let drift = (r.pose.position.0 - f.pose(&q).0.position.0).norm();
                         drift / dt.max(RESTART_MIN_SPAN_S)
                     });
+                    let velocity_floor = velocity_floor.max(since.turned_force_m_s);
                     debug!("t {t:.3}: acquired: the filter's pose restarts from the image's (velocity sigma at least {velocity_floor:.1} m/s)");
                     f.reset_pose(&q, &r.pose, &(r.covariance + calibration_cov), velocity_floor, sensitivity);
                     if f.forget_velocity_beyond(self.params.init_velocity_sigma_m_s) {
@@ -1616,6 +1677,8 @@ impl<'a> Navigator<'a> {
         // filter restarts from it); else the tiles go on.
         let confirming = self.candidate.take().and_then(|c| self.candidate_prediction(t, &pred, c));
         let was_confirming = confirming.is_some();
+        // After a gyro jump, the other hypothesis: it was a glitch.
+        let undo = self.jump_undone_prediction(t, &pred).map(|p| (p, image.clone()));
         let outcome = match confirming {
             Some(around) => self.solve(t, &around, image).map(|mut sol| {
                 debug!("t {t:.3}: searched around the acquisition of the frame before");
@@ -1623,6 +1686,23 @@ impl<'a> Navigator<'a> {
                 sol
             }),
             None => self.solve(t, &pred, image),
+        };
+        // The jumps undone and the guess they gave, when that search stood.
+        // (An acquisition in a tile away from the guess would wait for the
+        // next frame to confirm it: the jumps undone may explain this one.)
+        let held_tile = matches!(&outcome, Ok(sol) if sol.tile.is_some());
+        let (outcome, undone) = match undo {
+            Some((other, image)) if !self.stands(&outcome) || held_tile => match self.solve(t, &other, image)
+            {
+                Ok(mut sol) if self.count_check(&sol).is_none() => {
+                    debug!("t {t:.3}: the image fixes with the gyro's jumps since the last fix undone");
+                    // Its pose restarts the filter's, as an acquisition's.
+                    sol.acquisition = true;
+                    (Ok(sol), other.jump_turn.map(|j| (j, other.guess)))
+                }
+                _ => (outcome, None),
+            },
+            _ => (outcome, None),
         };
         let found = match &outcome {
             Ok(sol) => matches_of(sol),
@@ -1694,12 +1774,25 @@ impl<'a> Navigator<'a> {
                     self.wide_too_wide = false;
                     let ecef = match pred.filter {
                         Carried::Ins(f) => {
-                            self.accept_ins(t, f, &sol, calibration_cov, &sensitivity, since_fix_s)
+                            let turned_force_m_s = undone.map_or(0.0, |(j, _)| {
+                                turned_force_velocity(&self.imu, j.since_t, t, j.turn_ecef_rad.norm())
+                            });
+                            let since = SinceFix { fix_s: since_fix_s, turned_force_m_s };
+                            self.accept_ins(t, f, &sol, calibration_cov, &sensitivity, since)
                         }
                         Carried::Attitude(attitude) => {
-                            self.accept_fix(t, &pred.guess, &attitude, &sol) + calibration_cov
+                            let guess = undone.map_or(pred.guess, |u| u.1);
+                            self.accept_fix(t, &guess, &attitude, &sol) + calibration_cov
                         }
                     };
+                    if let Some((j, _)) = undone {
+                        self.jumps_undone += 1;
+                        info!(
+                            "t {t:.3}: the gyro's jump(s) since {:.3} s ({:.1} deg) taken for a glitch: the image fixes with them undone",
+                            j.since_t,
+                            j.turn_ecef_rad.norm().to_degrees()
+                        );
+                    }
                     self.log_fix(t, &ecef);
                     let ecef = self.doubt_map_offset(t, &calibration_cov).unwrap_or(ecef);
                     covariance = Some(PoseCovariance { t, position: self.pose.position.to_geodetic(), ecef });
@@ -1776,8 +1869,10 @@ impl<'a> Navigator<'a> {
         attitude: &Matrix6<f64>,
         sol: &Solution,
     ) -> Matrix6<f64> {
-        // A doubted pose ([`Self::doubt_prediction`]) is confirmed.
+        // A doubted pose ([`Self::doubt_prediction`]) is confirmed, and
+        // with it the attitude after any gyro jump.
         self.guess_doubted = false;
+        self.own_jump_turn = None;
         self.recent_fixes.push_back((t, sol.pose.position.0));
         while self.recent_fixes.front().is_some_and(|f| t - f.0 > VELOCITY_WINDOW_S) {
             self.recent_fixes.pop_front();
@@ -2217,6 +2312,39 @@ impl<'a> Navigator<'a> {
             pose_cov: None,
             filter: pred.filter.clone(),
             gyro_jumps: 0,
+            jump_turn: None,
+        })
+    }
+
+    /// The other hypothesis after the gyro's jumps since the last fix
+    /// (`pred.jump_turn`, together at least [`JUMP_UNDO_MIN_DEG`]): they
+    /// were glitches, not turns, and the camera looks where it did. Its
+    /// guess is `pred`'s turned back by them (in ECEF, where a turn made at
+    /// the jump stays the same rotation as the body turns on), its attitude
+    /// sigma at most 1 deg, its position's `pred`'s. `None` without such
+    /// jumps, or [`JUMP_UNDO_WITHIN_S`] after the first. Searched when
+    /// `pred`'s own search does not stand, or stands only in a tile away
+    /// from the guess (held for the next frame to confirm)
+    /// ([`Self::process`]); a fix there restarts the pose, as an
+    /// acquisition's does.
+    fn jump_undone_prediction(&self, t: f64, pred: &Prediction) -> Option<Prediction> {
+        let jump = pred.jump_turn?;
+        if !(jump.turn_ecef_rad.norm() >= JUMP_UNDO_MIN_DEG.to_radians())
+            || t - jump.since_t > JUMP_UNDO_WITHIN_S
+        {
+            return None;
+        }
+        let back = UnitQuaternion::from_scaled_axis(-jump.turn_ecef_rad);
+        let guess = CameraPose::new(pred.guess.position, back * pred.guess.q_ecef_cam);
+        let att_sigma = (pred.att_cov.trace() / 3.0).sqrt().min(1f64.to_radians());
+        Some(Prediction {
+            guess,
+            att_cov: Matrix3::identity() * att_sigma.powi(2),
+            sigma_m: pred.sigma_m,
+            pose_cov: None,
+            filter: pred.filter.clone(),
+            gyro_jumps: 0,
+            jump_turn: pred.jump_turn,
         })
     }
 
@@ -3091,6 +3219,21 @@ fn within_budget(works: &[u64], budget: f64) -> usize {
     fit.max(works.len().min(1))
 }
 
+/// How much velocity (m/s) the specific force the accelerometer measured
+/// between `t0` and `t1` (`imu`'s samples there) gains when turned by
+/// `angle_rad`: `2 sin(angle / 2)` times its integral's length bound, the
+/// integral of its norm. None without an accelerometer.
+fn turned_force_velocity(imu: &[ImuSample], t0: f64, t1: f64, angle_rad: f64) -> f64 {
+    let mut integral = 0.0;
+    for w in imu.windows(2) {
+        let (a, b) = (w[0].t.max(t0), w[1].t.min(t1));
+        if let (true, Some(f)) = (b > a, w[1].f_imu_m_s2) {
+            integral += f.norm() * (b - a);
+        }
+    }
+    2.0 * (0.5 * angle_rad.min(std::f64::consts::PI)).sin() * integral
+}
+
 /// `p` moved by `offset` (east, north; m) in its local level frame.
 fn shifted_enu(p: &trn_geodesy::Ecef, offset: &Vector2<f64>) -> trn_geodesy::Ecef {
     let g = p.to_geodetic();
@@ -3690,6 +3833,25 @@ mod tests {
         let first = HeightGate::new(guess, 0.0, None, 20.0, 30.0);
         assert_eq!(first.check(5929.0), None);
         assert!(first.check(5931.0).is_some() && first.check(4069.0).is_some());
+    }
+
+    #[test]
+    fn a_turned_force_adds_the_velocity_of_its_chord() {
+        // 1 g for 2 s at 100 Hz, then no accelerometer: turned by 30 deg
+        // from 0.5 s to 1.5 s, the velocity gained is 2 sin(15 deg) 9.8 m/s.
+        let imu: Vec<ImuSample> = (0..=300)
+            .map(|k| {
+                let t = k as f64 * 0.01;
+                let f = (t <= 2.0).then(|| Vector3::new(0.0, 0.0, 9.8));
+                ImuSample { t, w_imu_rad_s: Vector3::zeros(), f_imu_m_s2: f }
+            })
+            .collect();
+        let v = turned_force_velocity(&imu, 0.5, 1.5, 30f64.to_radians());
+        let expect = 2.0 * 15f64.to_radians().sin() * 9.8;
+        assert!((v - expect).abs() < 1e-9, "{v} {expect}");
+        // Where the log has no force, none; a half turn at most (a chord of 2).
+        assert_eq!(turned_force_velocity(&imu, 2.0, 3.0, 1.0), 0.0);
+        assert!((turned_force_velocity(&imu, 0.0, 1.0, 7.0) - 2.0 * 9.8).abs() < 1e-9);
     }
 
     #[test]

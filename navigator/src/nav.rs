@@ -27,7 +27,9 @@ use crate::ins::{
 };
 use crate::ins::{InsErrors, InsFilter, InsInit, InsState, IntrinsicsSensitivity, FOCAL};
 use crate::predict::{predict, Predicted};
-use crate::propagate::{ends_gap, for_each_segment, propagate_with_bias, unmeasured_attitude_variance};
+use crate::propagate::{
+    ends_gap, for_each_segment, propagate_with_bias, unmeasured_attitude_variance, WalkStarts,
+};
 use crate::track::{track_update, TrackAnchor, TrackParams, TrackPoint};
 use trn_view::footprint::{footprint, Footprint, FootprintParams};
 use trn_view::DbLevel;
@@ -464,6 +466,12 @@ pub struct Navigator<'a> {
     own_jump_turn: Option<JumpTurn>,
     /// Fixes found with the gyro's jumps undone ([`Self::jump_undone_prediction`]).
     jumps_undone: usize,
+    /// [`FilterMode::Fixes`]: the last accepted fix's attitude, for
+    /// [`Self::fix_rate`].
+    fix_attitude: Option<FixAttitude>,
+    /// [`FilterMode::Fixes`]: the body's rate the last two fixes measured
+    /// after the IMU log's end, where no gyro does.
+    fix_rate: Option<FixRate>,
     /// Misses since the last accepted fix ([`Self::count_miss`]).
     misses: usize,
     /// Frames whose miss, after a fix, grew the doubt
@@ -510,6 +518,61 @@ pub struct Navigator<'a> {
     /// first level searches for ([`ACQUISITION_TILE_LANDMARKS`]).
     tile_landmarks: std::cell::Cell<Option<usize>>,
 }
+
+/// [`FilterMode::Fixes`] after the IMU log's last sample: the body's rate
+/// from the turn between the last two accepted fixes (both after it, at
+/// most [`FIX_RATE_MAX_SPAN_S`] apart), carried on as the inertial filter
+/// carries the rate it learns there.
+#[derive(Clone, Copy, Debug)]
+struct FixRate {
+    /// The later fix's time (s): the rate's error walks from there.
+    t: f64,
+    /// The rate (rad/s, ECEF rotation vector per second).
+    w_ecef_rad_s: Vector3<f64>,
+    /// Its error (rad/s, 1 sigma per axis): the two fixes' attitude
+    /// sigmas over the time between them.
+    sigma_rad_s: f64,
+}
+
+/// An accepted fix's attitude, for [`FixRate`].
+#[derive(Clone, Copy, Debug)]
+struct FixAttitude {
+    /// Its time (s).
+    t: f64,
+    q_ecef_cam: UnitQuaternion<f64>,
+    /// Its attitude variance (rad², per axis).
+    var_rad2: f64,
+}
+
+impl FixRate {
+    /// The rate that turned `earlier`'s attitude into `later`'s (`None`
+    /// unless they are `(0, FIX_RATE_MAX_SPAN_S]` apart), its error the two
+    /// attitudes' over the time between them. A body that wobbles (a
+    /// rocket's roll, a balloon's swing) changes its rate from one pair
+    /// of fixes to the next: the change since the estimate `before` is
+    /// doubted as much again.
+    fn between(earlier: &FixAttitude, later: &FixAttitude, before: Option<&FixRate>) -> Option<Self> {
+        let dt = later.t - earlier.t;
+        if !(dt > 0.0 && dt <= FIX_RATE_MAX_SPAN_S) {
+            return None;
+        }
+        let w_ecef_rad_s = rotation_vector(&(later.q_ecef_cam * earlier.q_ecef_cam.inverse())) / dt;
+        let change = before.map_or(0.0, |r| (w_ecef_rad_s - r.w_ecef_rad_s).norm_squared() / 3.0);
+        let measured = (earlier.var_rad2 + later.var_rad2).max(0.0) / (dt * dt);
+        Some(FixRate { t: later.t, w_ecef_rad_s, sigma_rad_s: (measured + change).sqrt() })
+    }
+
+    /// The turn (ECEF, on the left of an attitude) of this rate over `d`
+    /// seconds, and the attitude variance (rad² per axis) its error adds.
+    fn turn(&self, d: f64) -> (UnitQuaternion<f64>, f64) {
+        (UnitQuaternion::from_scaled_axis(self.w_ecef_rad_s * d), (self.sigma_rad_s * d).powi(2))
+    }
+}
+
+/// The most time between two fixes whose turn measures the body's rate
+/// after the IMU log ([`FixRate`]): a balloon's pendulum swings with a
+/// period of seconds.
+const FIX_RATE_MAX_SPAN_S: f64 = 1.5;
 
 /// What an accepted fix that restarts the inertial filter's pose knows of
 /// the time since the last one, for its velocity's doubt.
@@ -954,6 +1017,8 @@ impl<'a> Navigator<'a> {
             own_gyro_jumps: 0,
             own_jump_turn: None,
             jumps_undone: 0,
+            fix_attitude: None,
+            fix_rate: None,
             misses: 0,
             doubted_frames: 0,
             pool,
@@ -1012,7 +1077,11 @@ impl<'a> Navigator<'a> {
             let mut cov = self.filter.propagated(&p.bias_to_attitude, dt);
             self.doubt_unmeasured(&mut cov, t);
             let jumps = self.doubt_jumps(&mut cov, t, &q_ecef_imu, &mut jump_turn);
-            (CameraPose::new(position, p.q_ecef_imu * self.q_imu_cam), cov, jumps)
+            let (turn, turn_var) = self.fix_rate_turn(self.t, t);
+            for i in 0..3 {
+                cov[(i, i)] += turn_var;
+            }
+            (CameraPose::new(position, turn * p.q_ecef_imu * self.q_imu_cam), cov, jumps)
         } else {
             // Without the gyro the attitude is only known at fixes.
             let mut cov = self.filter.covariance;
@@ -1092,11 +1161,15 @@ impl<'a> Navigator<'a> {
     /// 3 s (`scripts/bench_faults.sh`) came out of the gap 2 deg off with a
     /// search sized for a tenth of that, and fixed 24 of 121 frames.
     fn doubt_unmeasured(&self, cov: &mut Matrix6<f64>, t: f64) {
+        let starts = WalkStarts {
+            before_log_t: self.init_h.t,
+            after_log_t: self.fix_rate.map_or(f64::NEG_INFINITY, |r| r.t),
+        };
         let v = unmeasured_attitude_variance(
             &self.imu,
             self.t,
             t,
-            self.init_h.t,
+            starts,
             self.imu_gap_s,
             self.params.imu_gap_doubt_deg_s_sqrt_s.to_radians(),
             HELD_RATE_MAX_DEG_S.to_radians(),
@@ -1109,6 +1182,34 @@ impl<'a> Navigator<'a> {
             let before = cov[(i, i)];
             cov[(i, i)] = (before + v).min(before.max(cap));
         }
+    }
+
+    /// [`FilterMode::Fixes`]: the turn (ECEF, on the left of the attitude)
+    /// of the rate the fixes measured after the IMU log ([`FixRate`]) over
+    /// the part of `[t0, t1]` after the log's last sample, and the attitude
+    /// variance (rad² per axis) its error adds there; none without it.
+    fn fix_rate_turn(&self, t0: f64, t1: f64) -> (UnitQuaternion<f64>, f64) {
+        let (Some(r), Some(end)) = (self.fix_rate, self.imu.last().map(|x| x.t)) else {
+            return (UnitQuaternion::identity(), 0.0);
+        };
+        let d = t1 - t0.max(end);
+        if !(d > 0.0) {
+            return (UnitQuaternion::identity(), 0.0);
+        }
+        r.turn(d)
+    }
+
+    /// [`FilterMode::Fixes`]: the rate the fix at `t` (attitude `q_ecef_cam`,
+    /// its variance `var` per axis) and the one before measure where the
+    /// IMU log has ended ([`FixRate`]; `None` otherwise).
+    fn fix_rate_at(&mut self, t: f64, q_ecef_cam: UnitQuaternion<f64>, var: f64) -> Option<FixRate> {
+        let later = FixAttitude { t, q_ecef_cam, var_rad2: var };
+        let earlier = self.fix_attitude.replace(later)?;
+        let end = self.imu.last()?.t;
+        if earlier.t < end {
+            return None;
+        }
+        FixRate::between(&earlier, &later, self.fix_rate.as_ref())
     }
 
     /// The camera for a frame at `t`: the calibration's estimate, with the
@@ -1395,8 +1496,9 @@ impl<'a> Navigator<'a> {
         self.ins.as_ref().map_or(self.own_gyro_jumps, |f| f.gyro_jumps())
     }
 
-    /// Fixes found with the gyro's jumps since the fix before undone
-    /// ([`Self::jump_undone_prediction`]).
+    /// Fixes found with the gyro's jumps since the fix before undone: a
+    /// frame whose own search did not stand after a jump beyond its doubt,
+    /// searched again as if the jump had been a glitch.
     pub fn gyro_jumps_undone(&self) -> usize {
         self.jumps_undone
     }
@@ -1873,6 +1975,17 @@ impl<'a> Navigator<'a> {
         // with it the attitude after any gyro jump.
         self.guess_doubted = false;
         self.own_jump_turn = None;
+        let att_var = sol.attitude_covariance().trace() / 3.0;
+        let rate = self.fix_rate_at(t, sol.pose.q_ecef_cam, att_var);
+        if let (Some(r), None) = (rate, self.fix_rate) {
+            info!(
+                "t {t:.3} s: after the IMU log's end, the last two fixes measure the body's rate: \
+                 {:.2} deg/s (sigma {:.2} deg/s per axis), carried on where no gyro measures",
+                r.w_ecef_rad_s.norm().to_degrees(),
+                r.sigma_rad_s.to_degrees()
+            );
+        }
+        self.fix_rate = rate;
         self.recent_fixes.push_back((t, sol.pose.position.0));
         while self.recent_fixes.front().is_some_and(|f| t - f.0 > VELOCITY_WINDOW_S) {
             self.recent_fixes.pop_front();
@@ -2295,7 +2408,7 @@ impl<'a> Navigator<'a> {
                 let q_ecef_cam = if self.params.use_gyro {
                     let q_ecef_imu = pose.q_ecef_cam * self.q_imu_cam.inverse();
                     let p = propagate_with_bias(q_ecef_imu, t0, t, &self.imu, &self.filter.bias_imu_rad_s);
-                    p.q_ecef_imu * self.q_imu_cam
+                    self.fix_rate_turn(t0, t).0 * p.q_ecef_imu * self.q_imu_cam
                 } else {
                     pose.q_ecef_cam
                 };
@@ -4112,5 +4225,40 @@ mod tests {
         assert_eq!(median(&mut v), Some(24.0));
         assert_eq!(median(&mut [8.0, 64.0, 16.0]), Some(16.0));
         assert_eq!(median(&mut []), None);
+    }
+
+    /// [`FixRate::between`] on synthetic attitudes: a steady 2 deg/s turn
+    /// is measured and carried on to within the fixes' doubt; fixes too far
+    /// apart measure nothing; a rate that changed since the last estimate
+    /// (a wobble) is doubted by the change.
+    #[test]
+    fn two_fixes_measure_the_rate_after_the_log() {
+        let q0 = UnitQuaternion::from_euler_angles(0.3, -0.2, 1.1);
+        let w = Vector3::new(0.5, -1.0, 1.5).normalize() * 2f64.to_radians();
+        let at = |t: f64, w: &Vector3<f64>| FixAttitude {
+            t,
+            q_ecef_cam: UnitQuaternion::from_scaled_axis(w * t) * q0,
+            var_rad2: 0.01f64.to_radians().powi(2),
+        };
+        let r = FixRate::between(&at(0.0, &w), &at(0.5, &w), None).unwrap();
+        assert!((r.w_ecef_rad_s - w).norm() < 1e-12, "{:?}", r.w_ecef_rad_s);
+        assert_eq!(r.t, 0.5);
+        // Two fixes' 0.01 deg over 0.5 s.
+        assert!((r.sigma_rad_s.to_degrees() - 0.01 * 2f64.sqrt() / 0.5).abs() < 1e-9, "{}", r.sigma_rad_s);
+        // Carried on 1 s: the attitude there, within the fixes' doubt.
+        let (turn, var) = r.turn(1.0);
+        let predicted = turn * at(0.5, &w).q_ecef_cam;
+        assert!(predicted.angle_to(&at(1.5, &w).q_ecef_cam) < 1e-12);
+        assert!((var.sqrt() - r.sigma_rad_s).abs() < 1e-15);
+        // Too far apart, or out of order: nothing.
+        assert!(FixRate::between(&at(0.0, &w), &at(2.0, &w), None).is_none());
+        assert!(FixRate::between(&at(0.5, &w), &at(0.0, &w), None).is_none());
+        // The rate changed by 3 deg/s since the last estimate: doubted by
+        // that change, 3/sqrt(3) deg/s per axis, on top of the fixes'.
+        let w2 = w + Vector3::new(3f64.to_radians(), 0.0, 0.0);
+        let r2 = FixRate::between(&at(0.0, &w2), &at(0.5, &w2), Some(&r)).unwrap();
+        assert!((r2.w_ecef_rad_s - w2).norm() < 1e-12);
+        let expect = (r.sigma_rad_s.powi(2) + 3f64.to_radians().powi(2) / 3.0).sqrt();
+        assert!((r2.sigma_rad_s - expect).abs() < 1e-12, "{} vs {expect}", r2.sigma_rad_s);
     }
 }

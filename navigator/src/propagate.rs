@@ -107,13 +107,25 @@ pub fn propagate_with_bias(
     Propagated { q_ecef_imu: earth * q_ecef_imu * body, bias_to_attitude: sens }
 }
 
+/// Where the rate's walk of a stretch no gyro sample measures starts
+/// ([`unmeasured_attitude_variance`]), besides a gap's (its last sample).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct WalkStarts {
+    /// Before the log's first sample: the flight's first frame.
+    pub before_log_t: f64,
+    /// After the log's last sample: that sample, or later where fixes
+    /// measured the rate after it (the later of the two counts).
+    pub after_log_t: f64,
+}
+
 /// The attitude variance (rad², about any axis) that the parts of
 /// `[t0, t1]` no gyro sample measures add, for a navigator that carries no
 /// rate of its own (`--filter fixes`): through a gap (an interval between
 /// samples longer than `gap_s`; 0: none recognised), after the log's last
-/// sample, and before its first (from `t_first`, the flight's first frame).
+/// sample, and before its first (the walks' starts in `starts`).
 /// The rate carried there ([`propagate_with_bias`]: the sample after a gap,
-/// none outside the log) is taken as off by a random walk of
+/// none outside the log; after it, the fixes' own where they measured it)
+/// is taken as off by a random walk of
 /// `walk_rad_s_sqrt_s` from the stretch's start, up to `rate_cap_rad_s`:
 /// over `[a, b]` of a stretch that began at `s`, the angle `∫ w dt` of a
 /// rate error `w` walking from zero at `s` has the variance
@@ -123,7 +135,7 @@ pub fn unmeasured_attitude_variance(
     imu: &[ImuSample],
     t0: f64,
     t1: f64,
-    t_first: f64,
+    starts: WalkStarts,
     gap_s: f64,
     walk_rad_s_sqrt_s: f64,
     rate_cap_rad_s: f64,
@@ -141,8 +153,8 @@ pub fn unmeasured_attitude_variance(
     for_each_segment(imu, t0, t1, |a, b, sample| match sample {
         Some(k) if ends_gap(imu, k, gap_s) => add(a, b, imu[k - 1].t),
         Some(_) => {}
-        None if a >= imu[imu.len() - 1].t => add(a, b, imu[imu.len() - 1].t),
-        None => add(a, b, t_first.min(a)),
+        None if a >= imu[imu.len() - 1].t => add(a, b, starts.after_log_t.max(imu[imu.len() - 1].t).min(a)),
+        None => add(a, b, starts.before_log_t.min(a)),
     });
     var
 }
@@ -330,7 +342,8 @@ mod tests {
         let mut imu = samples(100.0, 10.0, |_| Vector3::zeros());
         imu.retain(|x| x.t >= 2.0 - 1e-9 && !(x.t > 4.0 + 1e-9 && x.t < 6.0 - 1e-9));
         let gap = gap_limit_s(&imu, 5.0).unwrap();
-        let var = |t0: f64, t1: f64| unmeasured_attitude_variance(&imu, t0, t1, 0.0, gap, sigma, cap);
+        let starts = WalkStarts { before_log_t: 0.0, after_log_t: f64::NEG_INFINITY };
+        let var = |t0: f64, t1: f64| unmeasured_attitude_variance(&imu, t0, t1, starts, gap, sigma, cap);
         // Measured throughout: nothing.
         assert_eq!(var(6.5, 9.5), 0.0);
         // In the gap, 0.5 s after its start, for 1 s: the rate's walk so
@@ -341,6 +354,10 @@ mod tests {
         // After the log's end (10 s), from its end.
         assert!(near(var(9.5, 11.0), q / 3.0), "{}", var(9.5, 11.0));
         assert!(near(var(12.0, 12.5), q * 2.0 * 0.25 + q * 0.125 / 3.0), "{}", var(12.0, 12.5));
+        // Where fixes measured the rate after it (at 11.5 s), from there.
+        let later = WalkStarts { after_log_t: 11.5, ..starts };
+        let v = unmeasured_attitude_variance(&imu, 12.0, 12.5, later, gap, sigma, cap);
+        assert!(near(v, q * 0.5 * 0.25 + q * 0.125 / 3.0), "{v}");
         // Before its first sample (its interval from 1.99 s), from the
         // flight's first frame (0 s).
         assert!(near(var(1.0, 1.5), q * 0.25 + q * 0.125 / 3.0), "{}", var(1.0, 1.5));
@@ -348,8 +365,8 @@ mod tests {
         let late = var(110.0, 110.5);
         assert!(near(late, cap * cap * 0.25 + q * 0.125 / 3.0), "{late}");
         // Not recognised (no gap limit), a gap is crossed as measured.
-        assert_eq!(unmeasured_attitude_variance(&imu, 4.5, 5.5, 0.0, 0.0, sigma, cap), 0.0);
-        assert_eq!(unmeasured_attitude_variance(&imu, 9.5, 11.0, 0.0, gap, 0.0, cap), 0.0);
+        assert_eq!(unmeasured_attitude_variance(&imu, 4.5, 5.5, starts, 0.0, sigma, cap), 0.0);
+        assert_eq!(unmeasured_attitude_variance(&imu, 9.5, 11.0, starts, gap, 0.0, cap), 0.0);
         // The formula against a simulated walk (2000 paths: 3% at 1 sigma).
         for (s, a, b) in [(0.0, 0.5, 1.0), (0.0, 0.0, 0.8)] {
             let sim = walked_angle_variance(s, a, b, sigma, 2000);

@@ -1884,7 +1884,9 @@ impl<'a> Navigator<'a> {
                         }
                         Carried::Attitude(attitude) => {
                             let guess = undone.map_or(pred.guess, |u| u.1);
-                            self.accept_fix(t, &guess, &attitude, &sol) + calibration_cov
+                            self.accept_fix(t, &guess, &attitude, &sol)
+                                + calibration_cov
+                                + map_offset_covariance(&self.params, sol.median_gsd_m)
                         }
                     };
                     if let Some((j, _)) = undone {
@@ -2006,7 +2008,7 @@ impl<'a> Navigator<'a> {
             let dtheta = rotation_vector(&(sol.pose.q_ecef_cam * guess.q_ecef_cam.inverse()));
             self.filter.update(attitude, &dtheta, &att_cov);
         }
-        sol.covariance
+        sol.covariance * fit_variance_factor(sol)
     }
 
     /// The accepted estimate's covariance `cov` (as reported), velocity and
@@ -3448,6 +3450,34 @@ fn inlier_sigmas_px(sol: &Solution, runs: &HashMap<i64, u32>) -> Vec<f64> {
 }
 
 /// Root mean square of the inliers' reprojection errors (pixels, distance).
+/// [`FilterMode::Fixes`]: what the map's offset adds to a fix's pose
+/// covariance (`[dtheta; dp]`, as `trn_vision::pnp`'s), for landmarks of
+/// `gsd_m` (none unknown). A fix is the pose the images see; the landmarks
+/// it matched may all be off alike (the ortho's registration, the DEM
+/// under them, another sun), and the true pose by as much: the inertial
+/// filter's map offset prior ([`map_sigmas_for_gsd`]), which the filter
+/// carries as a state and this mode cannot learn.
+fn map_offset_covariance(params: &NavParams, gsd_m: Option<f64>) -> Matrix6<f64> {
+    let Some(gsd) = gsd_m else { return Matrix6::zeros() };
+    let (m, deg) = map_sigmas_for_gsd(params, gsd);
+    let mut cov = Matrix6::zeros();
+    for i in 0..3 {
+        cov[(i, i)] = deg.to_radians().powi(2);
+        cov[(i + 3, i + 3)] = m * m;
+    }
+    cov
+}
+
+/// How much larger than the refinement assumed ([`REFINE_SIGMA_PX`]) a
+/// fix's inliers say its pixel errors are: `(rms / sqrt 2)^2 / sigma^2`
+/// (the per-axis sigma of their residuals' distances), at least 1. Without
+/// the inertial filter (`--filter fixes`) a fix's covariance, solved at
+/// 0.1 px, is scaled by it (the filter's updates weigh the matches at the
+/// same sigma, `accept_ins`).
+fn fit_variance_factor(sol: &Solution) -> f64 {
+    ((inlier_rms_px(sol) / 2f64.sqrt()).max(REFINE_SIGMA_PX) / REFINE_SIGMA_PX).powi(2)
+}
+
 fn inlier_rms_px(sol: &Solution) -> f64 {
     let (n, sum) = sol
         .records
@@ -3743,6 +3773,18 @@ mod tests {
             mean_landmark_h: None,
             median_gsd_m: None,
         }
+    }
+
+    #[test]
+    fn a_fix_covariance_is_scaled_by_its_residuals() {
+        // Inliers 0.8 px off (0.57 px per axis) where the refinement
+        // assumed 0.1 px: 32 times the variance; the outlier counts not.
+        let mut m: Vec<(f64, Option<f64>, bool)> = (0..12).map(|_| (0.8, None, true)).collect();
+        m.push((30.0, None, false));
+        let k = fit_variance_factor(&solution_of(&m));
+        assert!((k - 32.0).abs() < 1e-9, "{k}");
+        // Residuals under the assumed sigma never shrink it.
+        assert_eq!(fit_variance_factor(&solution_of(&[(0.05, None, true); 6])), 1.0);
     }
 
     #[test]
@@ -4221,6 +4263,20 @@ mod tests {
         p.map_sigma_m = Some(20.0);
         p.map_att_sigma_deg = Some(0.0);
         assert_eq!(map_sigmas_for_gsd(&p, 30.0), (20.0, 0.0));
+        // Without the filter a fix's covariance takes the offset's prior:
+        // 0.1 deg about each axis, 40 m along each, for 30 m landmarks.
+        let p = NavParams::default();
+        let c = map_offset_covariance(&p, Some(30.0));
+        let want = Matrix6::from_diagonal(&nalgebra::Vector6::new(
+            0.1f64.to_radians().powi(2),
+            0.1f64.to_radians().powi(2),
+            0.1f64.to_radians().powi(2),
+            1600.0,
+            1600.0,
+            1600.0,
+        ));
+        assert!((c - want).abs().max() < 1e-9, "{c}");
+        assert_eq!(map_offset_covariance(&p, None), Matrix6::zeros());
         let mut v = vec![32.0, 16.0, 16.0, 64.0];
         assert_eq!(median(&mut v), Some(24.0));
         assert_eq!(median(&mut [8.0, 64.0, 16.0]), Some(16.0));

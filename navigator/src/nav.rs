@@ -527,7 +527,9 @@ pub struct Navigator<'a> {
 struct FixRate {
     /// The later fix's time (s): the rate's error walks from there.
     t: f64,
-    /// The rate (rad/s, ECEF rotation vector per second).
+    /// The rate (rad/s, ECEF rotation vector per second) beyond the
+    /// Earth's turn, which the propagation applies itself: zero for a body
+    /// fixed in inertial space.
     w_ecef_rad_s: Vector3<f64>,
     /// Its error (rad/s, 1 sigma per axis): the two fixes' attitude
     /// sigmas over the time between them.
@@ -556,7 +558,8 @@ impl FixRate {
         if !(dt > 0.0 && dt <= FIX_RATE_MAX_SPAN_S) {
             return None;
         }
-        let w_ecef_rad_s = rotation_vector(&(later.q_ecef_cam * earlier.q_ecef_cam.inverse())) / dt;
+        let seen = rotation_vector(&(later.q_ecef_cam * earlier.q_ecef_cam.inverse())) / dt;
+        let w_ecef_rad_s = seen + Vector3::new(0.0, 0.0, trn_geodesy::EARTH_RATE_RAD_S);
         let change = before.map_or(0.0, |r| (w_ecef_rad_s - r.w_ecef_rad_s).norm_squared() / 3.0);
         let measured = (earlier.var_rad2 + later.var_rad2).max(0.0) / (dt * dt);
         Some(FixRate { t: later.t, w_ecef_rad_s, sigma_rad_s: (measured + change).sqrt() })
@@ -4291,20 +4294,28 @@ mod tests {
     fn two_fixes_measure_the_rate_after_the_log() {
         let q0 = UnitQuaternion::from_euler_angles(0.3, -0.2, 1.1);
         let w = Vector3::new(0.5, -1.0, 1.5).normalize() * 2f64.to_radians();
+        // In ECEF the body turns at its rate less the Earth's.
+        let earth = Vector3::new(0.0, 0.0, trn_geodesy::EARTH_RATE_RAD_S);
         let at = |t: f64, w: &Vector3<f64>| FixAttitude {
             t,
-            q_ecef_cam: UnitQuaternion::from_scaled_axis(w * t) * q0,
+            q_ecef_cam: UnitQuaternion::from_scaled_axis((w - earth) * t) * q0,
             var_rad2: 0.01f64.to_radians().powi(2),
         };
+        // Fixed in inertial space: no rate of its own.
+        let still = FixRate::between(&at(0.0, &Vector3::zeros()), &at(1.0, &Vector3::zeros()), None).unwrap();
+        assert!(still.w_ecef_rad_s.norm() < 1e-15, "{:?}", still.w_ecef_rad_s);
         let r = FixRate::between(&at(0.0, &w), &at(0.5, &w), None).unwrap();
         assert!((r.w_ecef_rad_s - w).norm() < 1e-12, "{:?}", r.w_ecef_rad_s);
         assert_eq!(r.t, 0.5);
         // Two fixes' 0.01 deg over 0.5 s.
         assert!((r.sigma_rad_s.to_degrees() - 0.01 * 2f64.sqrt() / 0.5).abs() < 1e-9, "{}", r.sigma_rad_s);
-        // Carried on 1 s: the attitude there, within the fixes' doubt.
+        // Carried on 1 s with the Earth's turn (as the propagation does):
+        // the attitude there (to the two turns' product's second order,
+        // |w x earth| / 2, 1.3e-6 rad).
         let (turn, var) = r.turn(1.0);
-        let predicted = turn * at(0.5, &w).q_ecef_cam;
-        assert!(predicted.angle_to(&at(1.5, &w).q_ecef_cam) < 1e-12);
+        let predicted = turn * UnitQuaternion::from_scaled_axis(-earth) * at(0.5, &w).q_ecef_cam;
+        let off = predicted.angle_to(&at(1.5, &w).q_ecef_cam);
+        assert!(off < 2e-6, "{off}");
         assert!((var.sqrt() - r.sigma_rad_s).abs() < 1e-15);
         // Too far apart, or out of order: nothing.
         assert!(FixRate::between(&at(0.0, &w), &at(2.0, &w), None).is_none());

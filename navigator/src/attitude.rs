@@ -15,8 +15,12 @@
 //! Kalman update of that block; since the image sees only the attitude, the
 //! bias follows from it by conditioning (Gaussian: `b | theta`), see
 //! [`AttitudeFilter::update`].
+//!
+//! Where no gyro measures (after the IMU log's end), two fixes measure the
+//! body's rate instead ([`FixRate`]).
 
-use nalgebra::{Matrix3, Matrix6, Vector3};
+use nalgebra::{Matrix3, Matrix6, UnitQuaternion, Vector3};
+use trn_vision::pnp::rotation_vector;
 
 /// Gyro error model (1 sigma per axis).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -115,6 +119,64 @@ impl AttitudeFilter {
         self.covariance = p;
     }
 }
+
+/// `--filter fixes` after the IMU log's last sample: the body's rate
+/// from the turn between the last two accepted fixes (both after it, at
+/// most [`FIX_RATE_MAX_SPAN_S`] apart), carried on as the inertial filter
+/// carries the rate it learns there.
+#[derive(Clone, Copy, Debug)]
+pub struct FixRate {
+    /// The later fix's time (s): the rate's error walks from there.
+    pub t: f64,
+    /// The rate (rad/s, ECEF rotation vector per second) beyond the
+    /// Earth's turn, which the propagation applies itself: zero for a body
+    /// fixed in inertial space.
+    pub w_ecef_rad_s: Vector3<f64>,
+    /// Its error (rad/s, 1 sigma per axis): the two fixes' attitude
+    /// sigmas over the time between them.
+    pub sigma_rad_s: f64,
+}
+
+/// An accepted fix's attitude, for [`FixRate`].
+#[derive(Clone, Copy, Debug)]
+pub struct FixAttitude {
+    /// Its time (s).
+    pub t: f64,
+    pub q_ecef_cam: UnitQuaternion<f64>,
+    /// Its attitude variance (rad², per axis).
+    pub var_rad2: f64,
+}
+
+impl FixRate {
+    /// The rate that turned `earlier`'s attitude into `later`'s (`None`
+    /// unless they are `(0, FIX_RATE_MAX_SPAN_S]` apart), its error the two
+    /// attitudes' over the time between them. A body that wobbles (a
+    /// rocket's roll, a balloon's swing) changes its rate from one pair
+    /// of fixes to the next: the change since the estimate `before` is
+    /// doubted as much again.
+    pub fn between(earlier: &FixAttitude, later: &FixAttitude, before: Option<&FixRate>) -> Option<Self> {
+        let dt = later.t - earlier.t;
+        if !(dt > 0.0 && dt <= FIX_RATE_MAX_SPAN_S) {
+            return None;
+        }
+        let seen = rotation_vector(&(later.q_ecef_cam * earlier.q_ecef_cam.inverse())) / dt;
+        let w_ecef_rad_s = seen + Vector3::new(0.0, 0.0, trn_geodesy::EARTH_RATE_RAD_S);
+        let change = before.map_or(0.0, |r| (w_ecef_rad_s - r.w_ecef_rad_s).norm_squared() / 3.0);
+        let measured = (earlier.var_rad2 + later.var_rad2).max(0.0) / (dt * dt);
+        Some(FixRate { t: later.t, w_ecef_rad_s, sigma_rad_s: (measured + change).sqrt() })
+    }
+
+    /// The turn (ECEF, on the left of an attitude) of this rate over `d`
+    /// seconds, and the attitude variance (rad² per axis) its error adds.
+    pub fn turn(&self, d: f64) -> (UnitQuaternion<f64>, f64) {
+        (UnitQuaternion::from_scaled_axis(self.w_ecef_rad_s * d), (self.sigma_rad_s * d).powi(2))
+    }
+}
+
+/// The most time between two fixes whose turn measures the body's rate
+/// after the IMU log ([`FixRate`]): a balloon's pendulum swings with a
+/// period of seconds.
+pub const FIX_RATE_MAX_SPAN_S: f64 = 1.5;
 
 #[cfg(test)]
 mod tests {
@@ -240,5 +302,48 @@ mod tests {
         let want = 0.25 * e.bias_rad_s.powi(2) + e.arw_rad_sqrt_s.powi(2) * 0.5;
         assert!((p[(0, 0)] - want).abs() < 1e-12 * want);
         assert!((p[(0, 3)] + 0.5 * e.bias_rad_s.powi(2)).abs() < 1e-20);
+    }
+
+    /// [`FixRate::between`] on synthetic attitudes: a steady 2 deg/s turn
+    /// is measured and carried on to within the fixes' doubt; fixes too far
+    /// apart measure nothing; a rate that changed since the last estimate
+    /// (a wobble) is doubted by the change.
+    #[test]
+    fn two_fixes_measure_the_rate_after_the_log() {
+        let q0 = UnitQuaternion::from_euler_angles(0.3, -0.2, 1.1);
+        let w = Vector3::new(0.5, -1.0, 1.5).normalize() * 2f64.to_radians();
+        // In ECEF the body turns at its rate less the Earth's.
+        let earth = Vector3::new(0.0, 0.0, trn_geodesy::EARTH_RATE_RAD_S);
+        let at = |t: f64, w: &Vector3<f64>| FixAttitude {
+            t,
+            q_ecef_cam: UnitQuaternion::from_scaled_axis((w - earth) * t) * q0,
+            var_rad2: 0.01f64.to_radians().powi(2),
+        };
+        // Fixed in inertial space: no rate of its own.
+        let still = FixRate::between(&at(0.0, &Vector3::zeros()), &at(1.0, &Vector3::zeros()), None).unwrap();
+        assert!(still.w_ecef_rad_s.norm() < 1e-15, "{:?}", still.w_ecef_rad_s);
+        let r = FixRate::between(&at(0.0, &w), &at(0.5, &w), None).unwrap();
+        assert!((r.w_ecef_rad_s - w).norm() < 1e-12, "{:?}", r.w_ecef_rad_s);
+        assert_eq!(r.t, 0.5);
+        // Two fixes' 0.01 deg over 0.5 s.
+        assert!((r.sigma_rad_s.to_degrees() - 0.01 * 2f64.sqrt() / 0.5).abs() < 1e-9, "{}", r.sigma_rad_s);
+        // Carried on 1 s with the Earth's turn (as the propagation does):
+        // the attitude there (to the two turns' product's second order,
+        // |w x earth| / 2, 1.3e-6 rad).
+        let (turn, var) = r.turn(1.0);
+        let predicted = turn * UnitQuaternion::from_scaled_axis(-earth) * at(0.5, &w).q_ecef_cam;
+        let off = predicted.angle_to(&at(1.5, &w).q_ecef_cam);
+        assert!(off < 2e-6, "{off}");
+        assert!((var.sqrt() - r.sigma_rad_s).abs() < 1e-15);
+        // Too far apart, or out of order: nothing.
+        assert!(FixRate::between(&at(0.0, &w), &at(2.0, &w), None).is_none());
+        assert!(FixRate::between(&at(0.5, &w), &at(0.0, &w), None).is_none());
+        // The rate changed by 3 deg/s since the last estimate: doubted by
+        // that change, 3/sqrt(3) deg/s per axis, on top of the fixes'.
+        let w2 = w + Vector3::new(3f64.to_radians(), 0.0, 0.0);
+        let r2 = FixRate::between(&at(0.0, &w2), &at(0.5, &w2), Some(&r)).unwrap();
+        assert!((r2.w_ecef_rad_s - w2).norm() < 1e-12);
+        let expect = (r.sigma_rad_s.powi(2) + 3f64.to_radians().powi(2) / 3.0).sqrt();
+        assert!((r2.sigma_rad_s - expect).abs() < 1e-12, "{} vs {expect}", r2.sigma_rad_s);
     }
 }

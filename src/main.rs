@@ -339,8 +339,9 @@ struct NavigateArgs {
     /// (deg/s/sqrt(s), a random walk; 0: none): the attitude's sigma grows as
     /// DOUBT * sqrt(t^3 / 3) t seconds into the gap, up to 10 deg; the fixes
     /// in the gap learn the rate. Likewise before the log's first sample
-    /// and after its last. (With --filter fixes, nothing learns the rate:
-    /// the attitude's doubt there grows from the stretch's start.)
+    /// and after its last. (With --filter fixes, nothing learns the rate
+    /// in a gap or before the log: the attitude's doubt there grows from
+    /// the stretch's start; after the log two fixes measure it.)
     #[arg(long, default_value_t = 3.0)]
     imu_gap_doubt: f64,
     /// The gyro's measurement range per axis (deg/s): a sample beyond it is
@@ -376,7 +377,8 @@ struct NavigateArgs {
     /// frame's pose is its own fix, the gyro carries the attitude; the
     /// navigator before the filter, for comparison: it doubts time without
     /// IMU samples, the gyro's jumps and runs of misses, and reads no
-    /// accelerometer).
+    /// accelerometer; a fix's covariance is scaled by its residuals and
+    /// counts the map offset's prior, which the filter carries as states).
     #[arg(long, value_enum, default_value_t = FilterArg::Tight)]
     filter: FilterArg,
     /// Velocity uncertainty at the start (m/s, 1 sigma per axis; init.json

@@ -416,10 +416,11 @@ struct NavigateArgs {
     #[arg(long)]
     no_track_update: bool,
     /// Carry the focal length in the tight filter's state, so the motion the
-    /// accelerometer measures calibrates it as well as the relief in view
-    /// (off by default: on the realistic flights a 2 mg accelerometer tells
-    /// a rocket's focal error only to 0.25%, and a balloon's pendulum makes
-    /// the map's errors pass for one; see the README).
+    /// accelerometer measures and the turns the gyro measures (through the
+    /// landmarks tracked between images) calibrate it as well as the relief
+    /// in view (off by default: on the realistic flights it learns the
+    /// nadir balloons' lens, but a rocket's clock offset with its wobble
+    /// biases it; see the README).
     #[arg(long)]
     inertial_focal: bool,
     /// Carry the principal point in the tight filter's state (two pixels):

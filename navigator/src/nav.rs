@@ -28,7 +28,7 @@ use crate::ins::{
 use crate::ins::{InsErrors, InsFilter, InsInit, InsState, IntrinsicsSensitivity, FOCAL};
 use crate::predict::{predict, Predicted};
 use crate::propagate::{
-    ends_gap, for_each_segment, propagate_with_bias, unmeasured_attitude_variance, WalkStarts,
+    ends_gap, for_each_segment, propagate_with_bias, turn_over, unmeasured_attitude_variance, WalkStarts,
 };
 use crate::track::{track_update, TrackAnchor, TrackParams, TrackPoint};
 use trn_view::footprint::{footprint, Footprint, FootprintParams};
@@ -1295,7 +1295,9 @@ impl<'a> Navigator<'a> {
         {
             return 0;
         }
-        let Some(o) = track_update(&self.camera, &self.q_imu_cam, f, anchor, current, &self.params.track)
+        let turn = Some(self.offset_turn(f));
+        let Some(o) =
+            track_update(&self.camera, &self.q_imu_cam, f, anchor, current, turn, &self.params.track)
         else {
             return 0;
         };
@@ -1304,6 +1306,13 @@ impl<'a> Navigator<'a> {
             o.pairs, o.used, o.chi2, o.limit, o.rms_px
         );
         o.used
+    }
+
+    /// The camera's turn (ECEF, on the left) from the filter's time to the
+    /// image's (its time offset later), integrated from the gyro.
+    fn offset_turn(&self, f: &InsFilter) -> UnitQuaternion<f64> {
+        let s = &f.state;
+        turn_over(s.q_ecef_imu, s.t, s.time_offset_s, &self.imu, &s.gyro_bias_imu_rad_s)
     }
 
     /// Updates the calibration with an accepted fix's inliers and moves the
@@ -1880,7 +1889,11 @@ impl<'a> Navigator<'a> {
             }
         };
         if let Some(f) = &self.ins {
-            self.track = Some(TrackAnchor::of(f, &self.q_imu_cam, current));
+            let anchor = TrackAnchor {
+                offset_turn: Some(self.offset_turn(f)),
+                ..TrackAnchor::of(f, &self.q_imu_cam, current)
+            };
+            self.track = Some(anchor);
         }
         let ms = start.elapsed().as_secs_f64() * 1e3;
         let g = self.pose.position.to_geodetic();

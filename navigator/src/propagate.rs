@@ -107,6 +107,27 @@ pub fn propagate_with_bias(
     Propagated { q_ecef_imu: earth * q_ecef_imu * body, bias_to_attitude: sens }
 }
 
+/// The turn (ECEF, on the left) of a body at `q_ecef_imu` at `t` over the
+/// next `tau` seconds (before it where negative), integrated from `imu`
+/// less `bias_imu_rad_s`: a camera's over its clock offset. The rate at
+/// `t` times `tau` leaves half the angular acceleration times `tau`
+/// squared, which a wobble turns back and forth with the images.
+pub fn turn_over(
+    q_ecef_imu: UnitQuaternion<f64>,
+    t: f64,
+    tau: f64,
+    imu: &[ImuSample],
+    bias_imu_rad_s: &Vector3<f64>,
+) -> UnitQuaternion<f64> {
+    let (t0, t1) = if tau >= 0.0 { (t, t + tau) } else { (t + tau, t) };
+    let turn = propagate_with_bias(q_ecef_imu, t0, t1, imu, bias_imu_rad_s).q_ecef_imu * q_ecef_imu.inverse();
+    if tau >= 0.0 {
+        turn
+    } else {
+        turn.inverse()
+    }
+}
+
 /// Where the rate's walk of a stretch no gyro sample measures starts
 /// ([`unmeasured_attitude_variance`]), besides a gap's (its last sample).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -446,6 +467,37 @@ mod tests {
             let reference = propagate(UnitQuaternion::identity(), 0.0, 20.0, &fine);
             assert!(coarse.angle_to(&reference) < bound, "{rate} Hz: {}", coarse.angle_to(&reference));
         }
+    }
+
+    #[test]
+    fn the_turn_over_a_clock_offset_is_the_gyros() {
+        // A wobble: 0.2 deg at 3 Hz about x (71 deg/s^2 at its peak),
+        // sampled at 400 Hz.
+        let (amp, omega) = (0.2f64.to_radians(), std::f64::consts::TAU * 3.0);
+        let w = |t: f64| Vector3::new(amp * omega * (omega * t).cos(), 0.0, 0.0);
+        let angle = |t: f64| amp * (omega * t).sin();
+        let imu = samples(400.0, 2.0, w);
+        let q0 = UnitQuaternion::from_euler_angles(0.3, -0.2, 1.0);
+        let tau = 0.005;
+        let about_x = |a: f64| q0 * UnitQuaternion::from_scaled_axis(Vector3::x() * a) * q0.inverse();
+        for t in [0.5, 0.58, 0.6, 1.0] {
+            // The body turns by the wobble's change of angle about its x
+            // axis (the Earth's turn over 5 ms, 4e-7 rad, aside).
+            let got = turn_over(q0, t, tau, &imu, &Vector3::zeros());
+            let want = about_x(angle(t + tau) - angle(t));
+            assert!(got.angle_to(&want) < 2e-6, "{t}: {}", got.angle_to(&want));
+            // Backwards: from t - tau to t, inverted.
+            let back = turn_over(q0, t, -tau, &imu, &Vector3::zeros());
+            let want = about_x(angle(t - tau) - angle(t));
+            assert!(back.angle_to(&want) < 2e-6, "{t}: {}", back.angle_to(&want));
+        }
+        // Where the angular acceleration peaks (1.24 rad/s^2, as at 0.58 s
+        // above), the rate times the offset misses by half of it times the
+        // offset squared, 1.5e-5 rad: eight times the tolerance above.
+        let t = 0.25 / 3.0;
+        let first_order = amp * omega * (omega * t).cos() * tau;
+        let exact = angle(t + tau) - angle(t);
+        assert!((first_order - exact).abs() > 0.8 * 0.5 * amp * omega * omega * tau * tau);
     }
 
     #[test]

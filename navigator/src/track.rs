@@ -71,6 +71,9 @@ pub struct TrackAnchor {
     pub points: Vec<TrackPoint>,
     /// The filter's [`InsFilter::gap_crossed_s`] then.
     pub gap_crossed_s: f64,
+    /// The camera's turn (ECEF, on the left) over the time offset, as the
+    /// gyro measured it (`None`: the rate times the offset).
+    pub offset_turn: Option<UnitQuaternion<f64>>,
 }
 
 impl TrackAnchor {
@@ -84,6 +87,7 @@ impl TrackAnchor {
             velocity_ecef_m_s: s.velocity_ecef_m_s,
             points,
             gap_crossed_s: f.gap_crossed_s,
+            offset_turn: None,
         }
     }
 }
@@ -172,6 +176,7 @@ pub fn track_update(
     f: &mut InsFilter,
     anchor: &TrackAnchor,
     current: &[TrackPoint],
+    offset_turn: Option<UnitQuaternion<f64>>,
     params: &TrackParams,
 ) -> Option<TrackOutcome> {
     let dt = f.state.t - anchor.t;
@@ -190,8 +195,19 @@ pub fn track_update(
     let s = &f.state;
     let tau = s.time_offset_s;
     // The poses the two images saw (the time offset's shift at each end).
-    let seen0 = perturb(&anchor.pose, &time_shift(&anchor.rate_ecef_rad_s, &anchor.velocity_ecef_m_s, tau));
-    let seen1 = perturb(&f.pose(q_imu_cam).0, &time_shift(&s.rate_ecef_rad_s, &s.velocity_ecef_m_s, tau));
+    // (The turn over the offset as the gyro measured it where given: the
+    // rate times the offset leaves half the angular acceleration times its
+    // square, which a wobble turns with the images.)
+    let shift = |rate: &Vector3<f64>, velocity: &Vector3<f64>, turn: Option<UnitQuaternion<f64>>| {
+        let mut d = time_shift(rate, velocity, tau);
+        if let Some(q) = turn {
+            d.fixed_rows_mut::<3>(0).copy_from(&q.scaled_axis());
+        }
+        d
+    };
+    let seen0 =
+        perturb(&anchor.pose, &shift(&anchor.rate_ecef_rad_s, &anchor.velocity_ecef_m_s, anchor.offset_turn));
+    let seen1 = perturb(&f.pose(q_imu_cam).0, &shift(&s.rate_ecef_rad_s, &s.velocity_ecef_m_s, offset_turn));
     let r_mid = {
         let q0 = anchor.pose.q_ecef_cam * q_imu_cam.inverse();
         q0.slerp(&s.q_ecef_imu, 0.5).to_rotation_matrix().into_inner()
@@ -409,7 +425,15 @@ mod tests {
     /// weighed at 0.05 px.
     fn update(s: &mut Scene) -> Option<TrackOutcome> {
         let params = TrackParams { sigma_px: 0.05, ..TrackParams::default() };
-        track_update(&s.camera, &UnitQuaternion::identity(), &mut s.filter, &s.anchor, &s.later, &params)
+        track_update(
+            &s.camera,
+            &UnitQuaternion::identity(),
+            &mut s.filter,
+            &s.anchor,
+            &s.later,
+            None,
+            &params,
+        )
     }
 
     #[test]

@@ -24,7 +24,9 @@
 # Results in target/realistic/databases/results.md.
 #
 #   scripts/bench_databases.sh
-# Environment: OUT (default target/realistic), THREADS (trn build, default 2).
+# Environment: OUT (default target/realistic), THREADS (trn build, default 2),
+#   NAV_ARGS (more trn navigate options, e.g. --inertial-focal), RESULTS
+#   (the results file's name in OUT/databases/, default results.md).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:-target/realistic}
@@ -116,14 +118,14 @@ navigate() {
   # share them).
   mkdir -p "$o"
   # shellcheck disable=SC2086
-  "$trn" navigate --db "$db" --flight "$flight" --out "$o/poses.csv" $extra > "$o.json" 2> "$o.log"
+  "$trn" navigate --db "$db" --flight "$flight" --out "$o/poses.csv" $extra ${NAV_ARGS:-} > "$o.json" 2> "$o.log"
   "$trn" evaluate --flight "$flight" --poses "$o/poses.csv" --json "$o.eval.json" > /dev/null 2>&1
 }
-export -f navigate; export trn work
+export -f navigate; export trn work NAV_ARGS
 echo "== navigating $(wc -l < "$jobs") flight/database pairs" >&2
 tr '\n' '\0' < "$jobs" | xargs -0 -P 2 -I{} bash -c 'navigate "$1"' _ {}
 
-python3 - "$work/results.md" "$work" "${rows[@]}" <<'PY'
+python3 - "$work/${RESULTS:-results.md}" "$work" "${rows[@]}" <<'PY'
 import json, os, sqlite3, statistics, sys
 out, work, rows = sys.argv[1], sys.argv[2], sys.argv[3:]
 def count(db):

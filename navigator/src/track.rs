@@ -147,6 +147,13 @@ struct Track {
 /// edge, far above rounding).
 const FOCAL_STEP: f64 = 1e-6;
 
+/// The point an image taken from `seen0` through `camera` saw at `pixel`,
+/// `depth` along the boresight.
+fn cast_point(camera: &CameraModel, seen0: &CameraPose, pixel: Pixel, depth: f64) -> Ecef {
+    let ray_cam = camera.ray(pixel);
+    seen0.to_ecef(&(ray_cam * (depth / ray_cam.z)))
+}
+
 /// Where an image taken from `seen1` sees the point an image from `seen0`
 /// saw at `pixel`, `depth` along the boresight, both through `camera`.
 fn predicted_pixel(
@@ -156,8 +163,7 @@ fn predicted_pixel(
     pixel: Pixel,
     depth: f64,
 ) -> Option<Pixel> {
-    let ray_cam = camera.ray(pixel);
-    let cast = seen0.to_ecef(&(ray_cam * (depth / ray_cam.z)));
+    let cast = cast_point(camera, seen0, pixel, depth);
     project_with_jacobian(camera, seen1, &cast.0).map(|(p, _)| p)
 }
 
@@ -233,8 +239,7 @@ pub fn track_update(
             if !(depth > 0.0) {
                 return None;
             }
-            let ray_cam = camera.ray(a.pixel);
-            let cast = seen0.to_ecef(&(ray_cam * (depth / ray_cam.z)));
+            let cast = cast_point(camera, &seen0, a.pixel, depth);
             let (pred, j) = project_with_jacobian(camera, &seen1, &cast.0)?;
             let (jt, jp) = (j.fixed_columns::<3>(0).into_owned(), j.fixed_columns::<3>(3).into_owned());
             let sigma = (a.sigma_px.powi(2) + b.sigma_px.powi(2) + params.sigma_px.powi(2)).sqrt();

@@ -329,6 +329,23 @@ mod tests {
         truth_later: CameraPose,
     }
 
+    /// The ground points (true place, database place) `camera` sees from
+    /// `pose`, each found to 0.05 px.
+    fn seen_points(
+        camera: &CameraModel,
+        pose: &CameraPose,
+        ground: &[(Vector3<f64>, Vector3<f64>)],
+    ) -> Vec<TrackPoint> {
+        ground
+            .iter()
+            .enumerate()
+            .filter_map(|(i, (p, db))| {
+                let px = pose.project(camera, &Ecef(*p))?;
+                Some(TrackPoint { landmark: i as i64, pixel: px, sigma_px: 0.05, point_ecef: *db })
+            })
+            .collect()
+    }
+
     fn scene(n_points: usize) -> Scene {
         scene_with(n_points, 0.0, 6.0)
     }
@@ -404,16 +421,8 @@ mod tests {
                 (p, p + off)
             })
             .collect();
-        let seen = |f: &InsFilter| -> Vec<TrackPoint> {
-            let pose = CameraPose::new(f.state.position, f.state.q_ecef_imu);
-            ground
-                .iter()
-                .enumerate()
-                .filter_map(|(i, (p, db))| {
-                    let px = pose.project(&camera, &Ecef(*p))?;
-                    Some(TrackPoint { landmark: i as i64, pixel: px, sigma_px: 0.05, point_ecef: *db })
-                })
-                .collect()
+        let seen = |f: &InsFilter| {
+            seen_points(&camera, &CameraPose::new(f.state.position, f.state.q_ecef_imu), &ground)
         };
         let anchor = anchor_of(&filter, seen(&truth));
         truth.propagate(0.5, &[]);
@@ -538,16 +547,7 @@ mod tests {
                 UnitQuaternion::from_axis_angle(&nalgebra::Unit::new_normalize(axis_ecef), deg.to_radians())
                     * pose0.q_ecef_cam,
             );
-            let seen = |pose: &CameraPose| -> Vec<TrackPoint> {
-                s.ground
-                    .iter()
-                    .enumerate()
-                    .filter_map(|(i, (p, db))| {
-                        let px = pose.project(&true_camera, &Ecef(*p))?;
-                        Some(TrackPoint { landmark: i as i64, pixel: px, sigma_px: 0.05, point_ecef: *db })
-                    })
-                    .collect()
-            };
+            let seen = |pose: &CameraPose| seen_points(&true_camera, pose, &s.ground);
             s.anchor.points = seen(&turned);
             s.anchor.pose = turned;
             s.later = seen(&s.truth_later);

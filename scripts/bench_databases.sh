@@ -25,7 +25,7 @@
 #
 #   scripts/bench_databases.sh
 # Environment: OUT (default target/realistic), THREADS (trn build, default 2),
-#   NAV_ARGS (more trn navigate options, e.g. --inertial-focal), RESULTS
+#   NAV_ARGS (more trn navigate options, e.g. --no-inertial-focal), RESULTS
 #   (the results file's name in OUT/databases/, default results.md).
 set -euo pipefail
 cd "$(dirname "$0")/.."

@@ -28,9 +28,9 @@
 //! to first order (up to its rotation of the baseline).
 //!
 //! Where the filter carries the focal length (the default; not with
-//! `--no-inertial-focal`), a track's row has its column too, by differences: a turn between the
-//! images moves every pixel by the focal length times its angle whatever
-//! the range, so a pendulum's tilts, which the gyro measures, tell the
+//! `--no-inertial-focal`), a track's row has its column too, by
+//! differences: a turn between the images moves every pixel by the focal
+//! length times its angle whatever the range, so a pendulum's tilts, which the gyro measures, tell the
 //! lens without the map's errors (a yaw about the boresight does not).
 //!
 //! **Robustness**: each track is gated against the prediction (chi-square,

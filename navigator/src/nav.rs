@@ -188,7 +188,7 @@ pub struct NavParams {
     /// turns the gyro measures through the landmarks tracked between images
     /// (a pendulum's tilts). On by default: on the 24 realistic runs
     /// (8 flights, 3 databases) the sum of the mean errors falls from 1661
-    /// to 1209 m against each fix's own evidence alone (README,
+    /// to 1208 m against each fix's own evidence alone (README,
     /// self-calibration).
     pub inertial_focal: bool,
     /// With the tight filter and a self-calibration that does not estimate

@@ -30,8 +30,9 @@
 //! Where the filter carries the focal length (the default; not with
 //! `--no-inertial-focal`), a track's row has its column too, by
 //! differences: a turn between the images moves every pixel by the focal
-//! length times its angle whatever the range, so a pendulum's tilts, which the gyro measures, tell the
-//! lens without the map's errors (a yaw about the boresight does not).
+//! length times its angle whatever the range, so a pendulum's tilts,
+//! which the gyro measures, tell the lens without the map's errors (a yaw
+//! about the boresight does not).
 //!
 //! **Robustness**: each track is gated against the prediction (chi-square,
 //! 2 degrees of freedom, 99.9%), the worst is dropped while one lies beyond
@@ -455,16 +456,23 @@ mod tests {
     /// The update of `s`'s filter with its later image's points, tracks
     /// weighed at 0.05 px.
     fn update(s: &mut Scene) -> Option<TrackOutcome> {
-        let params = TrackParams { sigma_px: 0.05, ..TrackParams::default() };
-        track_update(
-            &s.camera,
-            &UnitQuaternion::identity(),
-            &mut s.filter,
-            &s.anchor,
-            &s.later,
-            None,
-            &params,
-        )
+        update_with(s, &TrackParams { sigma_px: 0.05, ..TrackParams::default() })
+    }
+
+    /// [`update`] with `params`.
+    fn update_with(s: &mut Scene, params: &TrackParams) -> Option<TrackOutcome> {
+        track_update(&s.camera, &UnitQuaternion::identity(), &mut s.filter, &s.anchor, &s.later, None, params)
+    }
+
+    /// A gyro whose bias is known and a velocity known to 5 cm/s: a tilt
+    /// moves the image as a sideways motion would, and in flight the
+    /// accelerometer and the fixes tell the two apart over many turns (a
+    /// pendulum's tilts come and go, a velocity and a bias stay).
+    fn know_the_motion(s: &mut Scene) {
+        for i in 0..3 {
+            s.filter.covariance[(GYRO_BIAS + i, GYRO_BIAS + i)] = (0.1f64.to_radians() / 3600.0).powi(2);
+            s.filter.covariance[(VEL + i, VEL + i)] = 0.05f64.powi(2);
+        }
     }
 
     #[test]
@@ -547,15 +555,7 @@ mod tests {
     fn a_turn_between_the_images_measures_the_focal_length() {
         let run = |axis_cam: Vector3<f64>, deg: f64| {
             let mut s = scene_with(40, 0.005, 0.0);
-            // A gyro whose bias is known and a velocity known to 5 cm/s:
-            // a tilt moves the image as a sideways motion would, and in
-            // flight the accelerometer and the fixes tell the two apart
-            // over many turns (a pendulum's tilts come and go, a velocity
-            // and a bias stay).
-            for i in 0..3 {
-                s.filter.covariance[(GYRO_BIAS + i, GYRO_BIAS + i)] = (0.1f64.to_radians() / 3600.0).powi(2);
-                s.filter.covariance[(VEL + i, VEL + i)] = 0.05f64.powi(2);
-            }
+            know_the_motion(&mut s);
             let true_camera = CameraModel { fx: s.camera.fx * 1.003, fy: s.camera.fy * 1.003, ..s.camera };
             let pose0 = &s.anchor.pose;
             let axis_ecef = pose0.q_ecef_cam * axis_cam;
@@ -598,10 +598,7 @@ mod tests {
     fn a_turn_the_gyro_did_not_measure_does_not_move_the_lens() {
         let run = |unmeasured_deg: f64| {
             let mut s = scene_with(200, 0.005, 0.0);
-            for i in 0..3 {
-                s.filter.covariance[(GYRO_BIAS + i, GYRO_BIAS + i)] = (0.1f64.to_radians() / 3600.0).powi(2);
-                s.filter.covariance[(VEL + i, VEL + i)] = 0.05f64.powi(2);
-            }
+            know_the_motion(&mut s);
             let pose0 = s.anchor.pose;
             let axis = nalgebra::Unit::new_normalize(pose0.q_ecef_cam * Vector3::x());
             let turned = |deg: f64| {
@@ -613,17 +610,7 @@ mod tests {
             s.anchor.points = seen_points(&s.camera, &turned(3.0 + unmeasured_deg), &s.ground);
             s.anchor.pose = turned(3.0);
             s.later = seen_points(&s.camera, &s.truth_later, &s.ground);
-            let params = TrackParams::default();
-            let o = track_update(
-                &s.camera,
-                &UnitQuaternion::identity(),
-                &mut s.filter,
-                &s.anchor,
-                &s.later,
-                None,
-                &params,
-            )
-            .expect("an update");
+            let o = update_with(&mut s, &TrackParams::default()).expect("an update");
             (o, s.filter.take_focal_error().0)
         };
         let (o, focal) = run(0.0);

@@ -391,6 +391,46 @@ fn acquires_from_5_km_on_real_relief() {
     acquires(&s, &s.root().join("poses-oblique-south.csv"), &["--init-sigma-m", "6000"], 2, 0.6);
 }
 
+/// The lens learnt in flight on real relief: the realistic 30 km nadir
+/// balloon, whose camera's focal length is 0.3% longer than `camera.json`
+/// says. A nadir view cannot tell it from the range, so each fix's own
+/// evidence leaves it at its prior (`--no-inertial-focal`); the inertial
+/// filter, which carries it by default, learns it from the pendulum's
+/// tilts through the landmarks tracked between images, and the fixes'
+/// error falls with it.
+#[test]
+fn the_filter_learns_the_lens_a_nadir_view_cannot_see() {
+    let dir = tempfile::tempdir().unwrap();
+    let (db, flight) = realistic_flight(dir.path(), "sierra-balloon-nadir", 300.0, "20");
+    let s = NavFixture { dir: tempfile::tempdir().unwrap(), db, flight };
+    // (focal estimate, its sigma, mean fix error m)
+    let run = |name: &str, extra: &[&str]| {
+        let poses = s.root().join(format!("{name}.csv"));
+        let o = navigate(&s, &poses, extra);
+        assert!(o.status.success(), "{name}: navigate failed: {}", stderr(&o));
+        let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        let cal = &report["calibration"];
+        let e = evaluate_flight(&s.flight, &poses, &s.root().join(format!("{name}.json")));
+        let run = &e["runs"][0];
+        assert!(run["status"]["share_fix"].as_f64().unwrap() >= 0.95, "{name}: {run}");
+        let got = (
+            cal["focal_rel"].as_f64().unwrap(),
+            cal["focal_sigma_rel"].as_f64().unwrap(),
+            run["fix_errors"]["pos_m"]["mean"].as_f64().unwrap(),
+        );
+        println!("{name}: focal {:+.3}% +- {:.3}%, mean error {:.1} m", got.0 * 100.0, got.1 * 100.0, got.2);
+        got
+    };
+    let (focal, sigma, carried_m) = run("carried", &[]);
+    let (alone, alone_sigma, alone_m) = run("alone", &["--no-inertial-focal"]);
+    // Each fix alone: nothing learnt (the prior's 0.5%).
+    assert!(alone.abs() < 0.0005 && alone_sigma > 0.0045, "{alone} +- {alone_sigma}");
+    // Carried: within 3 sigmas of the truth, the sigma at most 0.3%, and on
+    // the right side of zero.
+    assert!((focal - 0.003).abs() < 3.0 * sigma && sigma < 0.003 && focal > 0.0, "{focal} +- {sigma}");
+    assert!(carried_m < 0.8 * alone_m, "carried {carried_m:.1} m, alone {alone_m:.1} m");
+}
+
 /// A low camera's acquisition: the realistic 640x480 rocket (40 deg, 3.5 km
 /// above the pad) with its guess 1.5 km off (about 23 deg of view at that
 /// height), told. Its acquisition searches the 160x120 level: on the 80x60

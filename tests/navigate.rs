@@ -983,7 +983,7 @@ fn recovers_from_sensor_faults_and_bad_images() {
     assert!(r.iter().all(|x| x.1 == "fix"), "{r:?}");
     // Its worst fix as without the shock (58.3 m when written); not
     // doubted (`--accel-max-jump 0`), the velocity 100 m/s off is trusted
-    // and the fixes drift (200.6 m).
+    // and the fixes drift (204.9 m).
     assert!(worst < 110.0, "{worst:.1} m");
     let (report, _, worst_off, _) = run_changed("shock-unwatched", &shock, &["--accel-max-jump", "0"]);
     assert_eq!(report["accel_jumps"], 0, "{report}");
@@ -1001,9 +1001,11 @@ fn recovers_from_sensor_faults_and_bad_images() {
         })
     };
     // Seen with the focal length not carried by the filter
-    // (`--no-inertial-focal`): with it, the frames keep fixing through the
-    // shock (20 of 21 when written, the worst 215 m at 3.5 sigmas), and no
-    // run of misses comes.
+    // (`--no-inertial-focal`), whose run of misses has always come: with
+    // it carried, whether one comes depends on how the shock's velocity
+    // shares itself with the lens (15 of 21 fixed and 3 frames doubted
+    // when written; 20 of 21 and none when the search counted the lens's
+    // share of the range apart), and the recovery is checked alone.
     let (report, r, worst, _) =
         run_changed("big-shock-unwatched", &big, &["--accel-max-jump", "0", "--no-inertial-focal"]);
     assert!(report["doubted_frames"].as_u64().unwrap() >= 1, "{report}");

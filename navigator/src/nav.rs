@@ -1899,11 +1899,7 @@ impl<'a> Navigator<'a> {
             }
         };
         if let Some(f) = &self.ins {
-            let anchor = TrackAnchor {
-                offset_turn: Some(self.offset_turn(f)),
-                ..TrackAnchor::of(f, &self.q_imu_cam, current)
-            };
-            self.track = Some(anchor);
+            self.track = Some(TrackAnchor::of(f, &self.q_imu_cam, current, Some(self.offset_turn(f))));
         }
         let ms = start.elapsed().as_secs_f64() * 1e3;
         let g = self.pose.position.to_geodetic();
@@ -3417,7 +3413,6 @@ fn inlier_sigmas_px(sol: &Solution, runs: &HashMap<i64, u32>) -> Vec<f64> {
     var.iter().map(|v| v.sqrt().max(REFINE_SIGMA_PX)).collect()
 }
 
-/// Root mean square of the inliers' reprojection errors (pixels, distance).
 /// [`FilterMode::Fixes`]: what the map's offset adds to a fix's pose
 /// covariance (`[dtheta; dp]`, as `trn_vision::pnp`'s), for landmarks of
 /// `gsd_m` (none unknown). A fix is the pose the images see; the landmarks
@@ -3446,6 +3441,7 @@ fn fit_variance_factor(sol: &Solution) -> f64 {
     ((inlier_rms_px(sol) / 2f64.sqrt()).max(REFINE_SIGMA_PX) / REFINE_SIGMA_PX).powi(2)
 }
 
+/// Root mean square of the inliers' reprojection errors (pixels, distance).
 fn inlier_rms_px(sol: &Solution) -> f64 {
     let (n, sum) = sol
         .records

@@ -84,8 +84,14 @@ pub struct TrackAnchor {
 }
 
 impl TrackAnchor {
-    /// The filter's state now, and the points an image at its time found.
-    pub fn of(f: &InsFilter, q_imu_cam: &UnitQuaternion<f64>, points: Vec<TrackPoint>) -> Self {
+    /// The filter's state now, the points an image at its time found, and
+    /// the camera's turn over the time offset (see [`Self::offset_turn`]).
+    pub fn of(
+        f: &InsFilter,
+        q_imu_cam: &UnitQuaternion<f64>,
+        points: Vec<TrackPoint>,
+        offset_turn: Option<UnitQuaternion<f64>>,
+    ) -> Self {
         let s = &f.state;
         Self {
             t: s.t,
@@ -94,7 +100,7 @@ impl TrackAnchor {
             velocity_ecef_m_s: s.velocity_ecef_m_s,
             points,
             gap_crossed_s: f.gap_crossed_s,
-            offset_turn: None,
+            offset_turn,
         }
     }
 }
@@ -423,7 +429,7 @@ mod tests {
         let mut truth = InsFilter::new(state(true_velocity), &init, errors);
         let mut filter = InsFilter::new(state(true_velocity + north * velocity_off_m_s), &init, errors);
         let anchor_of =
-            |f: &InsFilter, pts: Vec<TrackPoint>| TrackAnchor::of(f, &UnitQuaternion::identity(), pts);
+            |f: &InsFilter, pts: Vec<TrackPoint>| TrackAnchor::of(f, &UnitQuaternion::identity(), pts, None);
         // Ground points around the two views, their database places off by
         // a pseudo-random 60 m at most.
         let side = (n_points as f64).sqrt().ceil() as usize;

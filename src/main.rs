@@ -415,6 +415,14 @@ struct NavigateArgs {
     /// time offset).
     #[arg(long)]
     no_track_update: bool,
+    /// The sigma each landmark track is weighed with on top of its two
+    /// correlation peaks' (px, per coordinate): a floor above the tracks'
+    /// scatter (0.1-0.6 px), so the motion they measure does not hold the
+    /// pose on its first fixes' errors; lower, they tell the velocity and
+    /// the lens more and the position follows the fixes less (see the
+    /// README).
+    #[arg(long, default_value_t = 2.0)]
+    track_sigma: f64,
     /// Do not carry the focal length in the tight filter's state (it is
     /// carried by default, so the motion the accelerometer measures and the
     /// turns the gyro measures, through the landmarks tracked between
@@ -745,6 +753,7 @@ fn nav_params(a: &NavigateArgs) -> trn_navigator::NavParams {
     params.time_offset_sigma_s = a.time_offset_sigma / 1e3;
     params.prior_gated_update = !a.no_prior_gated_update;
     params.track_update = !a.no_track_update;
+    params.track.sigma_px = a.track_sigma;
     params.inertial_focal = !a.no_inertial_focal;
     params.inertial_principal_point = a.inertial_principal_point;
     params.sun = a.sun;

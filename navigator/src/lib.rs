@@ -137,6 +137,7 @@ impl RunOptions {
             ("--init-velocity-sigma", p.init_velocity_sigma_m_s),
             ("--accel-bias", p.accel_bias_m_s2),
             ("--map-tau", p.map_tau_s),
+            ("--track-sigma", p.track.sigma_px),
         ] {
             if !positive(v) {
                 return bad(option, "must be a number > 0");

@@ -442,6 +442,14 @@ struct NavigateArgs {
     /// evidence).
     #[arg(long, conflicts_with = "estimate_principal_point")]
     inertial_principal_point: bool,
+    /// Carry the principal point in the tight filter's state but learn it
+    /// from the landmark tracks alone (a roll about the boresight between
+    /// two images turns the pixels about the true principal point, and the
+    /// database's errors cancel between the images): the fixes count its
+    /// uncertainty without moving it, so the database's tilt in a fix is
+    /// not taken for the camera's (see the README).
+    #[arg(long, conflicts_with_all = ["estimate_principal_point", "inertial_principal_point"])]
+    principal_point_from_tracks: bool,
     /// Trust camera.json's focal length instead of estimating it in flight.
     #[arg(long)]
     no_self_calibration: bool,
@@ -756,6 +764,7 @@ fn nav_params(a: &NavigateArgs) -> trn_navigator::NavParams {
     params.track.sigma_px = a.track_sigma;
     params.inertial_focal = !a.no_inertial_focal;
     params.inertial_principal_point = a.inertial_principal_point;
+    params.principal_point_from_tracks = a.principal_point_from_tracks;
     params.sun = a.sun;
     params.shading_weight = a.shading_weight;
     params.gyro_arw_deg_sqrt_s = a.gyro_arw / 60.0;

@@ -336,6 +336,13 @@ pub struct InsFilter {
     /// and v: the true one is that camera's plus this); taken with
     /// [`Self::take_principal_error`].
     pub principal_error_px: Vector2<f64>,
+    /// Whether the pose updates ([`Self::condition_on_pose_with`]) move
+    /// the principal point (true unless set otherwise). When false they
+    /// count its uncertainty without learning it (a Schmidt update: its
+    /// gain rows zeroed), so what the database's tilt puts into a fix is
+    /// not taken for the camera's; only the landmark tracks' rows
+    /// ([`crate::track`]), which the database's errors do not reach, move it.
+    pub principal_from_fixes: bool,
     /// The gyro's jumps (rad/s, IMU frame, bias included).
     gyro_watch: JumpWatch,
     /// The accelerometer's jumps (m/s^2, IMU frame, bias included).
@@ -469,6 +476,7 @@ impl InsFilter {
             errors,
             focal_error_rel: 0.0,
             principal_error_px: Vector2::zeros(),
+            principal_from_fixes: true,
             gyro_watch: JumpWatch::default(),
             accel_watch: JumpWatch::default(),
             jump_turn: None,
@@ -957,8 +965,24 @@ impl InsFilter {
         let (pred, m) = self.apparent_pose_with(q_imu_cam, sensitivity);
         let Some(m_inv) = m.cholesky().map(|c| c.inverse()) else { return false };
         let k = self.covariance * h.transpose() * m_inv;
+        let a = m - posterior_cov;
+        let p = if self.principal_from_fixes || !self.estimates_principal_point() {
+            self.covariance - k * a * k.transpose()
+        } else {
+            // Schmidt: the principal point's gain rows zeroed, and the
+            // covariance of that (suboptimal) gain, `P - Kz A K' - K A Kz'
+            // + Kz A Kz'` (Joseph's form with `H P = M K'` and `K (M + R)
+            // K'` written through the posterior, `A = M - posterior`).
+            let mut kz = k;
+            kz.fixed_rows_mut::<2>(PRINCIPAL).fill(0.0);
+            let p =
+                self.covariance - kz * a * k.transpose() - k * a * kz.transpose() + kz * a * kz.transpose();
+            let dx = kz * pose_difference(posterior, &pred);
+            self.covariance = (p + p.transpose()) * 0.5;
+            self.apply(&dx);
+            return true;
+        };
         let dx = k * pose_difference(posterior, &pred);
-        let p = self.covariance - k * (m - posterior_cov) * k.transpose();
         self.covariance = (p + p.transpose()) * 0.5;
         self.apply(&dx);
         true
@@ -2235,6 +2259,68 @@ mod tests {
         assert!((dma - want_dx.fixed_rows::<3>(MAP_ATT)).norm() < 1e-6 * dma.norm().max(1e-12));
         let dbg = g.state.gyro_bias_imu_rad_s - before.gyro_bias_imu_rad_s;
         assert!((dbg - want_dx.fixed_rows::<3>(GYRO_BIAS)).norm() < 1e-6 * dbg.norm().max(1e-12));
+    }
+
+    #[test]
+    fn a_pose_update_that_does_not_learn_the_principal_point_is_schmidts() {
+        // With `principal_from_fixes` off, conditioning on a pose is the
+        // textbook update with the principal point's gain rows zeroed and
+        // the covariance of that gain (Joseph's form): the principal point
+        // and its variance stay, the rest move by the gain that counts its
+        // uncertainty.
+        let turn = Turn::new();
+        let mut i = init();
+        i.focal_rel = 0.005;
+        i.principal_px = 3.0;
+        let mut f = InsFilter::new(turn.state(0.0), &i, errors());
+        let mut rng = Rng::new(5);
+        let a = Covariance::from_fn(|_, _| rng.normal());
+        let scale = Covariance::from_diagonal(&SMatrix::<f64, N, 1>::from_fn(|i, _| match i {
+            TIME => 0.01,
+            FOCAL => 0.005,
+            PRINCIPAL.. => 3.0,
+            MAP_ATT.. => 1e-3,
+            _ => [1e-3, 10.0, 1.0, 1e-5, 0.01, 10.0][i / 3],
+        }));
+        f.covariance = scale * (a * a.transpose() / N as f64 + Covariance::identity()) * scale;
+        f.principal_from_fixes = false;
+        let sens = IntrinsicsSensitivity(SMatrix::<f64, 6, 3>::from_fn(|r, c| {
+            let v = ((r * 3 + c) as f64 * 1.3).sin();
+            if r < 3 {
+                v * 1e-4
+            } else {
+                v * 10.0
+            }
+        }));
+        let q_imu_cam = UnitQuaternion::identity();
+        let (pred, m) = f.apparent_pose_with(&q_imu_cam, &sens);
+        let y = Vector6::new(2e-4, -1e-4, 3e-4, 12.0, -7.0, 4.0);
+        let r = Matrix6::from_diagonal(&Vector6::new(1e-7, 1e-7, 1e-7, 30.0, 30.0, 30.0));
+        let s_inv = (m + r).try_inverse().unwrap();
+        let post_cov = m - m * s_inv * m;
+        let posterior = perturb(&pred, &(m * s_inv * y));
+        let h = f.pose_rows_with(&sens);
+        let p = f.covariance;
+        let mut k = p * h.transpose() * s_inv;
+        k.fixed_rows_mut::<2>(PRINCIPAL).fill(0.0);
+        let i_kh = Covariance::identity() - k * h;
+        let want_p = i_kh * p * i_kh.transpose() + k * r * k.transpose();
+        let want_dx = k * y;
+        let before = f.clone();
+        assert!(f.condition_on_pose_with(&q_imu_cam, &posterior, &post_cov, &sens));
+        assert!((f.covariance - want_p).norm() < 1e-9 * want_p.norm(), "covariance");
+        let pp = |g: &InsFilter| g.covariance.fixed_view::<2, 2>(PRINCIPAL, PRINCIPAL).into_owned();
+        assert!((pp(&f) - pp(&before)).norm() < 1e-9 * pp(&before).norm());
+        assert_eq!(f.principal_error_px, before.principal_error_px);
+        let dv = f.state.velocity_ecef_m_s - before.state.velocity_ecef_m_s;
+        let want_dv = want_dx.fixed_rows::<3>(VEL).into_owned();
+        assert!((dv - want_dv).norm() < 1e-6 * want_dv.norm(), "{dv} {want_dv}");
+        assert!((f.focal_error_rel - want_dx[FOCAL]).abs() < 1e-6 * want_dx[FOCAL].abs().max(1e-12));
+        // Learnt from fixes (the default), the same update moves it.
+        let mut g = before.clone();
+        g.principal_from_fixes = true;
+        assert!(g.condition_on_pose_with(&q_imu_cam, &posterior, &post_cov, &sens));
+        assert!(g.principal_error_px.norm() > 0.0 && pp(&g).trace() < pp(&before).trace());
     }
 
     #[test]

@@ -201,6 +201,12 @@ pub struct NavParams {
     /// wrong side on the high rocket, whose worst fix and NEES it raises
     /// (README, self-calibration).
     pub inertial_principal_point: bool,
+    /// Carry the principal point in the inertial filter's state but learn
+    /// it from the landmark tracks alone (a roll about the boresight
+    /// between two images turns the pixels about the true principal
+    /// point): the fixes count its uncertainty without moving it, so the
+    /// database's tilt in a fix is not taken for the camera's.
+    pub principal_point_from_tracks: bool,
     pub track: TrackParams,
     /// A frame whose image-only pose is farther than this from the inertial
     /// filter's prediction (chi-square, 6 degrees of freedom) is rejected as
@@ -274,6 +280,7 @@ impl Default for NavParams {
             track_update: true,
             inertial_focal: true,
             inertial_principal_point: false,
+            principal_point_from_tracks: false,
             track: TrackParams::default(),
             // 99.9% of chi-square with 6 degrees of freedom.
             innovation_gate_chi2: 22.46,
@@ -870,7 +877,9 @@ impl<'a> Navigator<'a> {
         });
         // The calibration whose principal point the inertial filter carries.
         let principal_prior = params.calibration.filter(|c| {
-            params.filter == FilterMode::Tight && params.inertial_principal_point && !c.principal_point
+            params.filter == FilterMode::Tight
+                && (params.inertial_principal_point || params.principal_point_from_tracks)
+                && !c.principal_point
         });
         let imu_gap_s = crate::propagate::gap_limit_s(&imu, crate::IMU_GAP_FACTOR).unwrap_or(0.0);
         let ins = (params.filter != FilterMode::Fixes && params.use_gyro).then(|| {
@@ -888,7 +897,7 @@ impl<'a> Navigator<'a> {
                 rate_ecef_rad_s: Vector3::zeros(),
             };
             let deg_s = |d: f64| d.to_radians();
-            InsFilter::new(
+            let mut f = InsFilter::new(
                 state,
                 &InsInit {
                     attitude_rad: params.init_sigma_deg.to_radians(),
@@ -917,7 +926,9 @@ impl<'a> Navigator<'a> {
                     imu_gap_s,
                     gap_rate_walk_rad_s_sqrt_s: deg_s(params.imu_gap_doubt_deg_s_sqrt_s),
                 },
-            )
+            );
+            f.principal_from_fixes = !params.principal_point_from_tracks;
+            f
         });
         let init_h = HeightReference {
             t: init.t,

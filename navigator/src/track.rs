@@ -34,6 +34,13 @@
 //! which the gyro measures, tell the lens without the map's errors (a yaw
 //! about the boresight does not).
 //!
+//! Where it carries the principal point (`--inertial-principal-point`,
+//! `--principal-point-from-tracks`), a row has its two columns likewise: a
+//! roll about the boresight turns the pixels about the true principal
+//! point, so a wrong one shifts the image by the roll's angle times its
+//! error (a steady roll's shift is a tilt gyro bias's; a changing one, a
+//! balloon's spin, tells them apart).
+//!
 //! **Robustness**: each track is gated against the prediction (chi-square,
 //! 2 degrees of freedom, 99.9%), the worst is dropped while one lies beyond
 //! the gate from the fit, and the whole set must pass the joint innovation
@@ -53,7 +60,7 @@ use trn_camera::{CameraModel, CameraPose, Pixel};
 use trn_geodesy::Ecef;
 use trn_vision::pnp::project_with_jacobian;
 
-use crate::ins::{perturb, time_shift, InsFilter, FOCAL, GYRO_BIAS, N, TIME, VEL};
+use crate::ins::{perturb, time_shift, InsFilter, FOCAL, GYRO_BIAS, N, PRINCIPAL, TIME, VEL};
 
 /// A landmark found in an image (full-resolution pixels).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -166,6 +173,8 @@ struct Track {
 /// by differences: 1e-6 of ~2000 px moves a pixel by ~1e-3 px at the
 /// edge, far above rounding).
 const FOCAL_STEP: f64 = 1e-6;
+/// The principal point's step for its columns (px).
+const PRINCIPAL_STEP_PX: f64 = 1e-3;
 
 /// The point an image taken from `seen0` through `camera` saw at `pixel`,
 /// `depth` along the boresight.
@@ -253,6 +262,17 @@ pub fn track_update(
         fy: camera.fy * (1.0 + FOCAL_STEP),
         ..*camera
     });
+    // Where it carries the principal point, the camera's moved by a step
+    // in u, then in v: a roll about the boresight between the images turns
+    // the pixels about the true principal point, not `camera.json`'s.
+    let shifted: Vec<CameraModel> = if f.estimates_principal_point() {
+        vec![
+            CameraModel { cx: camera.cx + PRINCIPAL_STEP_PX, ..*camera },
+            CameraModel { cy: camera.cy + PRINCIPAL_STEP_PX, ..*camera },
+        ]
+    } else {
+        Vec::new()
+    };
     let p = &f.covariance;
 
     let mut tracks: Vec<Track> = pairs
@@ -275,6 +295,11 @@ pub fn track_update(
                 let moved = predicted_pixel(longer, &seen0, &seen1, a.pixel, depth)?;
                 let column = Vector2::new(moved.u - pred.u, moved.v - pred.v) / FOCAL_STEP;
                 h.fixed_view_mut::<2, 1>(0, FOCAL).copy_from(&column);
+            }
+            for (i, shifted) in shifted.iter().enumerate() {
+                let moved = predicted_pixel(shifted, &seen0, &seen1, a.pixel, depth)?;
+                let column = Vector2::new(moved.u - pred.u, moved.v - pred.v) / PRINCIPAL_STEP_PX;
+                h.fixed_view_mut::<2, 1>(0, PRINCIPAL + i).copy_from(&column);
             }
             let y = Vector2::new(b.pixel.u - pred.u, b.pixel.v - pred.v);
             // The gate against the prediction.
@@ -598,6 +623,54 @@ mod tests {
         let mut s = scene(40);
         update(&mut s).expect("an update");
         assert_eq!(s.filter.take_focal_error().0, 0.0);
+    }
+
+    /// A roll about the boresight between the images turns the pixels about
+    /// the true principal point: where the filter carries it, the tracks
+    /// measure it, whatever the map says. The camera's principal point
+    /// (+1.5, -1.0) px off the filter's, the earlier image rolled 10 deg
+    /// (a balloon's spin): the update finds it within its sigma, the sigma
+    /// under a fifth of its 3 px prior; tilted 3 deg instead, it is known
+    /// several times less well.
+    #[test]
+    fn a_roll_about_the_boresight_measures_the_principal_point() {
+        let run = |axis_cam: Vector3<f64>, deg: f64| {
+            let mut s = scene_with(100, 0.0, 0.0);
+            for i in 0..2 {
+                s.filter.covariance[(PRINCIPAL + i, PRINCIPAL + i)] = 9.0;
+            }
+            know_the_motion(&mut s);
+            let true_camera = CameraModel { cx: s.camera.cx + 1.5, cy: s.camera.cy - 1.0, ..s.camera };
+            let pose0 = &s.anchor.pose;
+            let axis_ecef = pose0.q_ecef_cam * axis_cam;
+            let turned = CameraPose::new(
+                pose0.position,
+                UnitQuaternion::from_axis_angle(&nalgebra::Unit::new_normalize(axis_ecef), deg.to_radians())
+                    * pose0.q_ecef_cam,
+            );
+            let seen = |pose: &CameraPose| seen_points(&true_camera, pose, &s.ground);
+            s.anchor.points = seen(&turned);
+            s.anchor.pose = turned;
+            s.later = seen(&s.truth_later);
+            let o = update(&mut s).expect("an update");
+            assert!(o.used >= 60 && o.chi2 <= o.limit, "{o:?}");
+            let (d, cov) = s.filter.take_principal_error();
+            (d, Vector2::new(cov[(0, 0)].sqrt(), cov[(1, 1)].sqrt()))
+        };
+        let (rolled, sigma) = run(Vector3::z(), 10.0);
+        let truth = Vector2::new(1.5, -1.0);
+        for i in 0..2 {
+            assert!((rolled[i] - truth[i]).abs() < 3.0 * sigma[i], "{rolled} +- {sigma}");
+            assert!(sigma[i] < 0.6, "{sigma}");
+        }
+        let (_, tilted_sigma) = run(Vector3::x(), 3.0);
+        // Measured: (+1.495, -0.995) +- (0.17, 0.17) px rolled, +- (1.45,
+        // 0.64) tilted.
+        println!(
+            "rolled ({:+.3}, {:+.3}) +- ({:.2}, {:.2}) px, tilted +- ({:.2}, {:.2})",
+            rolled.x, rolled.y, sigma.x, sigma.y, tilted_sigma.x, tilted_sigma.y
+        );
+        assert!(tilted_sigma.min() > 2.0 * sigma.max(), "a tilt says less of it: {tilted_sigma}");
     }
 
     /// A 3 deg tilt between the images that the gyro measured, and 0.1 deg

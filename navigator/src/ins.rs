@@ -966,8 +966,8 @@ impl InsFilter {
         let Some(m_inv) = m.cholesky().map(|c| c.inverse()) else { return false };
         let k = self.covariance * h.transpose() * m_inv;
         let a = m - posterior_cov;
-        let p = if self.principal_from_fixes || !self.estimates_principal_point() {
-            self.covariance - k * a * k.transpose()
+        let (gain, p) = if self.principal_from_fixes || !self.estimates_principal_point() {
+            (k, self.covariance - k * a * k.transpose())
         } else {
             // Schmidt: the principal point's gain rows zeroed, and the
             // covariance of that (suboptimal) gain, `P - Kz A K' - K A Kz'
@@ -975,14 +975,9 @@ impl InsFilter {
             // K'` written through the posterior, `A = M - posterior`).
             let mut kz = k;
             kz.fixed_rows_mut::<2>(PRINCIPAL).fill(0.0);
-            let p =
-                self.covariance - kz * a * k.transpose() - k * a * kz.transpose() + kz * a * kz.transpose();
-            let dx = kz * pose_difference(posterior, &pred);
-            self.covariance = (p + p.transpose()) * 0.5;
-            self.apply(&dx);
-            return true;
+            (kz, self.covariance - kz * a * k.transpose() - k * a * kz.transpose() + kz * a * kz.transpose())
         };
-        let dx = k * pose_difference(posterior, &pred);
+        let dx = gain * pose_difference(posterior, &pred);
         self.covariance = (p + p.transpose()) * 0.5;
         self.apply(&dx);
         true

@@ -43,9 +43,12 @@ fn evaluate_flight(flight: &Path, poses: &Path, json: &Path) -> serde_json::Valu
 
 /// `--inertial-principal-point`: the tight filter carries the principal
 /// point. The synthetic camera's is exact, and the balloon yaws 6 deg/s about
-/// its boresight: over its 3 s the filter learns it a little (2.1 px from
-/// its 3 px prior), around zero, and navigates as well. (The filter's own
-/// convergence is `trn-navigator`'s unit test on a 60 s turn.)
+/// its boresight: over its 3 s the filter learns it a little (2.8 px from
+/// its 3 px prior; 2.1 px before the landmark tracks' rows carried its
+/// columns, which say that a steady roll's turn of a principal point error
+/// is the shift a tilt gyro bias gives), around zero, and navigates as
+/// well. (The filter's own convergence is `trn-navigator`'s unit test on a
+/// 60 s turn.)
 #[test]
 fn the_principal_point_carried_by_the_filter_stays_at_an_exact_camera() {
     let s = nav_fixture();
@@ -58,7 +61,7 @@ fn the_principal_point_carried_by_the_filter_stays_at_an_exact_camera() {
     let sigma: Vec<f64> =
         cal["principal_sigma_px"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
     println!("principal point {est:?} px +- {sigma:?}");
-    assert!(sigma.iter().all(|&s| s > 0.0 && s < 2.5), "{cal}");
+    assert!(sigma.iter().all(|&s| s > 0.0 && s < 2.95), "{cal}");
     assert!(est.iter().zip(&sigma).all(|(e, s)| e.abs() < 3.0 * s), "{cal}");
     let run = &evaluate(&s, &poses)["runs"][0];
     let mean = run["fix_errors"]["pos_m"]["mean"].as_f64().unwrap();

@@ -587,12 +587,30 @@ fn bad_inputs_are_named() {
         ("--map-att-sigma", "nan"),
         ("--map-tau", "0"),
         ("--time-offset-sigma", "nan"),
+        ("--track-sigma", "0"),
+        ("--track-sigma", "nan"),
     ] {
         let o = run(&["navigate", "--db", "x", "--flight", "y", "--out", "z", opt, value]);
         assert!(!o.status.success(), "{opt} {value} accepted");
         let e = stderr(&o);
         assert!(e.lines().any(|l| l.starts_with("error:") && l.contains(opt)), "{opt}: {e}");
     }
+    // The principal point learnt two ways at once is a usage error that
+    // names both.
+    let o = run(&[
+        "navigate",
+        "--db",
+        "x",
+        "--flight",
+        "y",
+        "--out",
+        "z",
+        "--principal-point-from-tracks",
+        "--inertial-principal-point",
+    ]);
+    assert!(!o.status.success());
+    let e = stderr(&o);
+    assert!(e.contains("--principal-point-from-tracks") && e.contains("--inertial-principal-point"), "{e}");
     // trn synth checks its relief too, before writing anything.
     let (ortho, dem) = (dir.path().join("o.tif"), dir.path().join("d.tif"));
     let o = run(&[

@@ -2211,6 +2211,15 @@ mod tests {
         assert!(att_with < 0.5 * att_without && att_without > 1.5e-3, "{att_with} {att_without}");
     }
 
+    /// A random covariance (a seeded Wishart-like draw plus the identity)
+    /// scaled by `sigma(i)` per state.
+    fn random_covariance(seed: u64, sigma: impl Fn(usize) -> f64) -> Covariance {
+        let mut rng = Rng::new(seed);
+        let a = Covariance::from_fn(|_, _| rng.normal());
+        let scale = Covariance::from_diagonal(&SMatrix::<f64, N, 1>::from_fn(|i, _| sigma(i)));
+        scale * (a * a.transpose() / N as f64 + Covariance::identity()) * scale
+    }
+
     #[test]
     fn conditioning_on_a_pose_posterior_is_the_kalman_update() {
         // update_with_pose goes through condition_on_pose; check it against
@@ -2221,14 +2230,11 @@ mod tests {
         e.map_tau_s = 20.0;
         e.map_att_sigma_rad = 1e-3;
         let mut f = InsFilter::new(turn.state(0.0), &init(), e);
-        let mut rng = Rng::new(3);
-        let a = Covariance::from_fn(|_, _| rng.normal());
-        let scale = Covariance::from_diagonal(&SMatrix::<f64, N, 1>::from_fn(|i, _| match i {
+        f.covariance = random_covariance(3, |i| match i {
             TIME => 0.01,
             MAP_ATT.. => 1e-3,
             _ => [1e-3, 10.0, 1.0, 1e-5, 0.01, 10.0][i / 3],
-        }));
-        f.covariance = scale * (a * a.transpose() / N as f64 + Covariance::identity()) * scale;
+        });
         f.state.rate_ecef_rad_s = Vector3::new(0.1, -0.05, 0.2);
         f.state.time_offset_s = 0.003;
         let q_imu_cam = UnitQuaternion::identity();
@@ -2268,16 +2274,13 @@ mod tests {
         i.focal_rel = 0.005;
         i.principal_px = 3.0;
         let mut f = InsFilter::new(turn.state(0.0), &i, errors());
-        let mut rng = Rng::new(5);
-        let a = Covariance::from_fn(|_, _| rng.normal());
-        let scale = Covariance::from_diagonal(&SMatrix::<f64, N, 1>::from_fn(|i, _| match i {
+        f.covariance = random_covariance(5, |i| match i {
             TIME => 0.01,
             FOCAL => 0.005,
             PRINCIPAL.. => 3.0,
             MAP_ATT.. => 1e-3,
             _ => [1e-3, 10.0, 1.0, 1e-5, 0.01, 10.0][i / 3],
-        }));
-        f.covariance = scale * (a * a.transpose() / N as f64 + Covariance::identity()) * scale;
+        });
         f.principal_from_fixes = false;
         let sens = IntrinsicsSensitivity(SMatrix::<f64, 6, 3>::from_fn(|r, c| {
             let v = ((r * 3 + c) as f64 * 1.3).sin();

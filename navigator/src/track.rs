@@ -510,6 +510,23 @@ mod tests {
         }
     }
 
+    /// The earlier image taken turned `deg` about `axis_cam` (the camera's
+    /// frame) from where the filter has it, and both images seen through
+    /// `true_camera`: a turn the gyro measured, by a camera that is not the
+    /// filter's.
+    fn see_turned(s: &mut Scene, true_camera: &CameraModel, axis_cam: Vector3<f64>, deg: f64) {
+        let pose0 = &s.anchor.pose;
+        let axis_ecef = pose0.q_ecef_cam * axis_cam;
+        let turned = CameraPose::new(
+            pose0.position,
+            UnitQuaternion::from_axis_angle(&nalgebra::Unit::new_normalize(axis_ecef), deg.to_radians())
+                * pose0.q_ecef_cam,
+        );
+        s.anchor.points = seen_points(true_camera, &turned, &s.ground);
+        s.anchor.pose = turned;
+        s.later = seen_points(true_camera, &s.truth_later, &s.ground);
+    }
+
     #[test]
     fn tracks_measure_the_velocity_whatever_the_map_says() {
         let mut s = scene(40);
@@ -592,17 +609,7 @@ mod tests {
             let mut s = scene_with(40, 0.005, 0.0);
             know_the_motion(&mut s);
             let true_camera = CameraModel { fx: s.camera.fx * 1.003, fy: s.camera.fy * 1.003, ..s.camera };
-            let pose0 = &s.anchor.pose;
-            let axis_ecef = pose0.q_ecef_cam * axis_cam;
-            let turned = CameraPose::new(
-                pose0.position,
-                UnitQuaternion::from_axis_angle(&nalgebra::Unit::new_normalize(axis_ecef), deg.to_radians())
-                    * pose0.q_ecef_cam,
-            );
-            let seen = |pose: &CameraPose| seen_points(&true_camera, pose, &s.ground);
-            s.anchor.points = seen(&turned);
-            s.anchor.pose = turned;
-            s.later = seen(&s.truth_later);
+            see_turned(&mut s, &true_camera, axis_cam, deg);
             let o = update(&mut s).expect("an update");
             assert!(o.used >= 30 && o.chi2 <= o.limit, "{o:?}");
             (s.filter.take_focal_error().0, s.filter.covariance[(FOCAL, FOCAL)].sqrt())
@@ -641,17 +648,7 @@ mod tests {
             }
             know_the_motion(&mut s);
             let true_camera = CameraModel { cx: s.camera.cx + 1.5, cy: s.camera.cy - 1.0, ..s.camera };
-            let pose0 = &s.anchor.pose;
-            let axis_ecef = pose0.q_ecef_cam * axis_cam;
-            let turned = CameraPose::new(
-                pose0.position,
-                UnitQuaternion::from_axis_angle(&nalgebra::Unit::new_normalize(axis_ecef), deg.to_radians())
-                    * pose0.q_ecef_cam,
-            );
-            let seen = |pose: &CameraPose| seen_points(&true_camera, pose, &s.ground);
-            s.anchor.points = seen(&turned);
-            s.anchor.pose = turned;
-            s.later = seen(&s.truth_later);
+            see_turned(&mut s, &true_camera, axis_cam, deg);
             let o = update(&mut s).expect("an update");
             assert!(o.used >= 60 && o.chi2 <= o.limit, "{o:?}");
             let (d, cov) = s.filter.take_principal_error();

@@ -2211,6 +2211,16 @@ mod tests {
         assert!(att_with < 0.5 * att_without && att_without > 1.5e-3, "{att_with} {att_without}");
     }
 
+    /// Each state's scale for [`random_covariance`] (rad, m, m/s, rad/s,
+    /// m/s^2, m, s, then 1e-3 for the rest).
+    fn test_sigma(i: usize) -> f64 {
+        match i {
+            TIME => 0.01,
+            MAP_ATT.. => 1e-3,
+            _ => [1e-3, 10.0, 1.0, 1e-5, 0.01, 10.0][i / 3],
+        }
+    }
+
     /// A random covariance (a seeded Wishart-like draw plus the identity)
     /// scaled by `sigma(i)` per state.
     fn random_covariance(seed: u64, sigma: impl Fn(usize) -> f64) -> Covariance {
@@ -2230,11 +2240,7 @@ mod tests {
         e.map_tau_s = 20.0;
         e.map_att_sigma_rad = 1e-3;
         let mut f = InsFilter::new(turn.state(0.0), &init(), e);
-        f.covariance = random_covariance(3, |i| match i {
-            TIME => 0.01,
-            MAP_ATT.. => 1e-3,
-            _ => [1e-3, 10.0, 1.0, 1e-5, 0.01, 10.0][i / 3],
-        });
+        f.covariance = random_covariance(3, test_sigma);
         f.state.rate_ecef_rad_s = Vector3::new(0.1, -0.05, 0.2);
         f.state.time_offset_s = 0.003;
         let q_imu_cam = UnitQuaternion::identity();
@@ -2275,11 +2281,9 @@ mod tests {
         i.principal_px = 3.0;
         let mut f = InsFilter::new(turn.state(0.0), &i, errors());
         f.covariance = random_covariance(5, |i| match i {
-            TIME => 0.01,
             FOCAL => 0.005,
             PRINCIPAL.. => 3.0,
-            MAP_ATT.. => 1e-3,
-            _ => [1e-3, 10.0, 1.0, 1e-5, 0.01, 10.0][i / 3],
+            _ => test_sigma(i),
         });
         f.principal_from_fixes = false;
         let sens = IntrinsicsSensitivity(SMatrix::<f64, 6, 3>::from_fn(|r, c| {

@@ -265,14 +265,10 @@ pub fn track_update(
     // Where it carries the principal point, the camera's moved by a step
     // in u, then in v: a roll about the boresight between the images turns
     // the pixels about the true principal point, not `camera.json`'s.
-    let shifted: Vec<CameraModel> = if f.estimates_principal_point() {
-        vec![
-            CameraModel { cx: camera.cx + PRINCIPAL_STEP_PX, ..*camera },
-            CameraModel { cy: camera.cy + PRINCIPAL_STEP_PX, ..*camera },
-        ]
-    } else {
-        Vec::new()
-    };
+    let shifted = f.estimates_principal_point().then_some([
+        CameraModel { cx: camera.cx + PRINCIPAL_STEP_PX, ..*camera },
+        CameraModel { cy: camera.cy + PRINCIPAL_STEP_PX, ..*camera },
+    ]);
     let p = &f.covariance;
 
     let mut tracks: Vec<Track> = pairs
@@ -296,7 +292,7 @@ pub fn track_update(
                 let column = Vector2::new(moved.u - pred.u, moved.v - pred.v) / FOCAL_STEP;
                 h.fixed_view_mut::<2, 1>(0, FOCAL).copy_from(&column);
             }
-            for (i, shifted) in shifted.iter().enumerate() {
+            for (i, shifted) in shifted.iter().flatten().enumerate() {
                 let moved = predicted_pixel(shifted, &seen0, &seen1, a.pixel, depth)?;
                 let column = Vector2::new(moved.u - pred.u, moved.v - pred.v) / PRINCIPAL_STEP_PX;
                 h.fixed_view_mut::<2, 1>(0, PRINCIPAL + i).copy_from(&column);

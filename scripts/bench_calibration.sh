@@ -35,6 +35,7 @@ trn=target/release/trn
 [ -x "$trn" ] || cargo build --release --quiet --bin trn
 suite="$OUT/suite.tsv"
 [ -f "$suite" ] || { echo "no $suite: run scripts/bench_realistic.sh first" >&2; exit 1; }
+PY=${PY:-.venv/bin/python}
 work="$OUT/calibration"
 label=${RESULTS:-results.md}
 label=${label%.md}
@@ -97,16 +98,27 @@ for label, cam in cameras.items():
     if draw:
         json.dump(draw, open(os.path.join(base, label, "draw.json"), "w"), indent=2)
 PY
-  for d in "$runs/$name"/*/; do echo "${d%/} $db" >> "$jobs"; done
+  base=-
+  if [ -n "${BASELINE:-}" ] && { [ "$BASELINE" = all ] || [[ " $BASELINE " == *" $name "* ]]; }; then
+    base=$(python3 -c "import json, sys; print(next(r['baseline_db'] for r in json.load(open(sys.argv[1])) if r['scenario'] == sys.argv[2]))" \
+      "$OUT/bench/results.json" "$name") || { echo "$name: no baseline database in $OUT/bench/results.json" >&2; exit 1; }
+  fi
+  for d in "$runs/$name"/*/; do echo "${d%/} $db $base" >> "$jobs"; done
 done < "$suite"
 
 navigate() {
-  read -r dir db <<< "$1"
+  read -r dir db base <<< "$1"
   # shellcheck disable=SC2086
   "$trn" navigate --db "$db" --flight "$dir/flight" --out "$dir/poses.csv" ${NAV_ARGS:-} > "$dir/report.json" 2> "$dir/log"
   "$trn" evaluate --flight "$dir/flight" --poses "$dir/poses.csv" --json "$dir/eval.json" > /dev/null 2>&1
+  if [ "$base" != - ]; then
+    mkdir -p "$dir/opencv"
+    "$PY" scripts/baseline_opencv.py --db "$base" --flight "$dir/flight" --out "$dir/opencv/poses.csv" \
+      > "$dir/opencv/report.json" 2> "$dir/opencv/log"
+    "$trn" evaluate --flight "$dir/flight" --poses "$dir/opencv/poses.csv" --json "$dir/opencv/eval.json" > /dev/null 2>&1
+  fi
 }
-export -f navigate; export trn NAV_ARGS
+export -f navigate; export trn NAV_ARGS PY
 echo "== navigating $(wc -l < "$jobs") runs" >&2
 tr '\n' '\0' < "$jobs" | xargs -0 -P 2 -I{} bash -c 'navigate "$1"' _ {}
 
@@ -124,13 +136,33 @@ def run(d):
     fixes = [f["error"]["pos_m"] for f in e["per_frame"] if f["status"] == "fix"]
     c = e["consistency"]
     return sum(fixes) / len(fixes), c["mean_nees"], c["max_sigma_distance"]
+def baseline(d):
+    """The baseline's mean error over its fixes in draw folder d (None: not
+    run; inf: no fix)."""
+    path = os.path.join(d, "opencv", "eval.json")
+    if not os.path.exists(path):
+        return None
+    e = json.load(open(path))["runs"][0]
+    fixes = [f["error"]["pos_m"] for f in e["per_frame"] if f["status"] == "fix"]
+    return sum(fixes) / len(fixes) if fixes else float("inf")
+versus = []
 draws = 0
 for name in sorted(os.listdir(runs)):
     base = os.path.join(runs, name)
     if not os.path.isdir(base):
         continue
     true = run(os.path.join(base, "true"))
-    ds = [run(os.path.join(base, d)) for d in sorted(os.listdir(base)) if d.startswith("draw")]
+    names = [d for d in sorted(os.listdir(base)) if d.startswith("draw")]
+    ds = [run(os.path.join(base, d)) for d in names]
+    bs = [baseline(os.path.join(base, d)) for d in names]
+    if all(b is not None for b in bs):
+        fixed = [(m, b) for (m, _, _), b in zip(ds, bs) if b != float("inf")]
+        versus.append(
+            f"| {name} | {len(fixed)} of {len(bs)} | "
+            + (f"{statistics.mean(b for _, b in fixed):.1f} | {statistics.mean(m for m, _ in fixed):.1f} | "
+               f"{statistics.mean(m for m, _ in fixed) / statistics.mean(b for _, b in fixed):.2f} | "
+               f"{min(m / b for m, b in fixed):.2f}–{max(m / b for m, b in fixed):.2f} |" if fixed else "n/a | n/a | n/a | n/a |")
+        )
     draws = len(ds)
     means = [m for m, _, _ in ds]
     nees = [n for _, n, _ in ds]
@@ -142,6 +174,10 @@ for name in sorted(os.listdir(runs)):
         f"| {within} of {len(ds)} | {statistics.mean(nees):.2f} | {min(nees):.2f}–{max(nees):.2f} | {far:.1f} |"
     )
 lines[0] = lines[0].replace("{draws}", str(draws))
+if versus:
+    lines += ["", "Against the OpenCV baseline on the same drawn camera.json (the draws it fixed at least once):", "",
+              "| flight | draws the baseline fixed | baseline mean m | trn mean m | trn ÷ baseline | per draw |",
+              "|---|---:|---:|---:|---:|---|"] + versus
 open(out, "w").write("\n".join(lines) + "\n")
 print("\n".join(lines))
 PY

@@ -27,7 +27,13 @@
 #   space-separated; default every flight of OUT/suite.tsv), ERRORS (which
 #   errors the draws hold, comma-separated among focal, principal and k1;
 #   default all three: the others are the true camera's), PRINCIPAL_PX (the
-#   principal point error's length, px; default the scenario's, 1.8).
+#   principal point error's length, px; default the scenario's, 1.8),
+#   BASELINE (flight names, space-separated, or "all": those flights' draws
+#   are navigated by the OpenCV baseline too, on the database
+#   `scripts/bench_realistic.sh` built it for the flight's camera, named in
+#   OUT/bench/results.json, with the same camera.json; the results then
+#   give the baseline's mean over the draws and trn's over it), PY (the
+#   baseline's Python, default .venv/bin/python as bench_nav.sh's).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:-target/realistic}
@@ -103,7 +109,11 @@ PY
     base=$(python3 -c "import json, sys; print(next(r['baseline_db'] for r in json.load(open(sys.argv[1])) if r['scenario'] == sys.argv[2]))" \
       "$OUT/bench/results.json" "$name") || { echo "$name: no baseline database in $OUT/bench/results.json" >&2; exit 1; }
   fi
-  for d in "$runs/$name"/*/; do echo "${d%/} $db $base" >> "$jobs"; done
+  for d in "$runs/$name"/*/; do
+    # The baseline on the drawn cameras only.
+    b=$base; [ "$(basename "$d")" = true ] && b=-
+    echo "${d%/} $db $b" >> "$jobs"
+  done
 done < "$suite"
 
 navigate() {
@@ -134,6 +144,8 @@ lines = [
 def run(d):
     e = json.load(open(os.path.join(d, "eval.json")))["runs"][0]
     fixes = [f["error"]["pos_m"] for f in e["per_frame"] if f["status"] == "fix"]
+    if not fixes:
+        sys.exit(f"{d}: no fix (see its log)")
     c = e["consistency"]
     return sum(fixes) / len(fixes), c["mean_nees"], c["max_sigma_distance"]
 def baseline(d):
@@ -155,7 +167,9 @@ for name in sorted(os.listdir(runs)):
     names = [d for d in sorted(os.listdir(base)) if d.startswith("draw")]
     ds = [run(os.path.join(base, d)) for d in names]
     bs = [baseline(os.path.join(base, d)) for d in names]
-    if all(b is not None for b in bs):
+    if any(b is None for b in bs) and any(b is not None for b in bs):
+        print(f"{name}: the baseline failed on some draws (see their opencv/log)", file=sys.stderr)
+    if bs and all(b is not None for b in bs):
         fixed = [(m, b) for (m, _, _), b in zip(ds, bs) if b != float("inf")]
         versus.append(
             f"| {name} | {len(fixed)} of {len(bs)} | "

@@ -367,6 +367,13 @@ impl fmt::Display for RunReport {
                 c.max_sigma_distance,
                 c.max_sigma_distance_t
             )?;
+            if let Some(a) = &c.attitude {
+                writeln!(
+                    f,
+                    "attitude covariance (NEES, n={}): mean {:.2} (consistent: {:.2}..{:.2}), the farthest fix {:.1} sigma from the truth (t {:.2} s)",
+                    a.fixes, a.mean_nees, a.band[0], a.band[1], a.max_sigma_distance, a.max_sigma_distance_t
+                )?;
+            }
         }
         Ok(())
     }

@@ -346,6 +346,23 @@ pub struct Consistency {
     /// consistent navigator's 3D distance exceeds 5 once in ~70 000 fixes.)
     pub max_sigma_distance: f64,
     pub max_sigma_distance_t: f64,
+    /// The same test of the attitude (`None`: no fix with an invertible
+    /// attitude block).
+    pub attitude: Option<AttitudeConsistency>,
+}
+
+/// Whether the navigator's attitude covariances fit its attitude errors:
+/// the NEES of the rotation error `log(q_est q_true⁻¹)` (ECEF, the left
+/// perturbation of `covariance.csv`'s attitude block), 3 degrees of
+/// freedom, over the fixes with an invertible attitude block; the fields
+/// as [`Consistency`]'s.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct AttitudeConsistency {
+    pub fixes: usize,
+    pub mean_nees: f64,
+    pub band: [f64; 2],
+    pub max_sigma_distance: f64,
+    pub max_sigma_distance_t: f64,
 }
 
 /// χ²(k) quantile at the standard-normal point `z` (Wilson-Hilferty; within
@@ -358,42 +375,72 @@ pub fn chi2_quantile(k: f64, z: f64) -> f64 {
 /// [`Consistency`] of the `fix` frames that have a covariance row at their
 /// time (`covariances` in time order).
 pub fn consistency(frames: &[FrameEval], covariances: &[TimedCovariance]) -> Option<Consistency> {
-    let mut nees = Vec::new();
-    let mut worst = (f64::NEG_INFINITY, f64::NAN);
+    // (NEES, time) of each fix, position and attitude.
+    let mut position = Vec::new();
+    let mut attitude = Vec::new();
+    let nees = |e: Vector3<f64>, p: nalgebra::Matrix3<f64>| {
+        p.try_inverse().map(|pi| (e.transpose() * pi * e)[(0, 0)]).filter(|v| v.is_finite() && *v >= 0.0)
+    };
     for f in frames.iter().filter(|f| f.status == FixStatus::Fix) {
         let Some(est) = &f.estimate else { continue };
         let i = covariances.partition_point(|c| c.t < f.t - TIME_TOL_S);
         let Some(c) = covariances.get(i).filter(|c| (c.t - f.t).abs() <= TIME_TOL_S) else { continue };
-        let p: nalgebra::Matrix3<f64> = c.ecef.fixed_view::<3, 3>(3, 3).into_owned();
         let e = est.position.to_ecef().0 - f.truth.position.to_ecef().0;
-        if let Some(pi) = p.try_inverse() {
-            let v = (e.transpose() * pi * e)[(0, 0)];
-            if v.is_finite() && v >= 0.0 {
-                nees.push(v);
-                if v > worst.0 {
-                    worst = (v, f.t);
-                }
-            }
+        if let Some(v) = nees(e, c.ecef.fixed_view::<3, 3>(3, 3).into_owned()) {
+            position.push((v, f.t));
+        }
+        let e = (est.q_ecef_cam * f.truth.q_ecef_cam.inverse()).scaled_axis();
+        if let Some(v) = nees(e, c.ecef.fixed_view::<3, 3>(0, 0).into_owned()) {
+            attitude.push((v, f.t));
         }
     }
-    let n = nees.len();
-    if n == 0 {
-        return None;
-    }
-    let mean = nees.iter().sum::<f64>() / n as f64;
-    let k = 3.0 * n as f64;
-    let z = 1.959_963_984_540_054;
-    let mut sorted = nees.clone();
+    let p = NeesSummary::of(&position)?;
+    let mut sorted: Vec<f64> = position.iter().map(|(v, _)| *v).collect();
     sorted.sort_by(f64::total_cmp);
+    let n = sorted.len();
     Some(Consistency {
         fixes: n,
-        mean_nees: mean,
-        band: [chi2_quantile(k, -z) / n as f64, chi2_quantile(k, z) / n as f64],
-        share_within_95: nees.iter().filter(|&&v| v <= 7.814_727_903_251_178).count() as f64 / n as f64,
+        mean_nees: p.mean,
+        band: p.band,
+        share_within_95: sorted.iter().filter(|&&v| v <= 7.814_727_903_251_178).count() as f64 / n as f64,
         median_sigma_ratio: (sorted[n / 2] / 3.0).sqrt(),
-        max_sigma_distance: worst.0.sqrt(),
-        max_sigma_distance_t: worst.1,
+        max_sigma_distance: p.worst.0.sqrt(),
+        max_sigma_distance_t: p.worst.1,
+        attitude: NeesSummary::of(&attitude).map(|a| AttitudeConsistency {
+            fixes: attitude.len(),
+            mean_nees: a.mean,
+            band: a.band,
+            max_sigma_distance: a.worst.0.sqrt(),
+            max_sigma_distance_t: a.worst.1,
+        }),
     })
+}
+
+/// The mean of 3-degree-of-freedom NEES values (with their times), its 95%
+/// band (χ²(3n)/n) and the largest value with its time.
+struct NeesSummary {
+    mean: f64,
+    band: [f64; 2],
+    worst: (f64, f64),
+}
+
+impl NeesSummary {
+    fn of(nees: &[(f64, f64)]) -> Option<Self> {
+        let n = nees.len();
+        if n == 0 {
+            return None;
+        }
+        let k = 3.0 * n as f64;
+        let z = 1.959_963_984_540_054;
+        Some(Self {
+            mean: nees.iter().map(|(v, _)| v).sum::<f64>() / n as f64,
+            band: [chi2_quantile(k, -z) / n as f64, chi2_quantile(k, z) / n as f64],
+            worst: nees
+                .iter()
+                .copied()
+                .fold((f64::NEG_INFINITY, f64::NAN), |w, x| if x.0 > w.0 { x } else { w }),
+        })
+    }
 }
 
 #[cfg(test)]
@@ -477,6 +524,58 @@ mod tests {
         assert!(bad.max_sigma_distance > 30.0, "{bad:?}");
         // Frames without a covariance row, or not fixes, are left out.
         assert!(consistency(&frames, &[]).is_none());
+        // Exact attitudes: an attitude NEES of zero (to rounding).
+        assert!(c.attitude.unwrap().mean_nees < 1e-12, "{c:?}");
+    }
+
+    #[test]
+    fn attitude_errors_drawn_from_the_covariance_are_consistent_and_a_tenth_of_it_is_not() {
+        // A correlated ECEF attitude covariance (rad), rotations drawn from
+        // it (Box-Muller on a fixed LCG) and applied on the left of the true
+        // attitude, as the navigator's covariance.csv perturbs it.
+        let l = nalgebra::Matrix3::new(2e-3, 0.0, 0.0, 1e-3, 1.5e-3, 0.0, -5e-4, 4e-4, 1e-3);
+        let p = l * l.transpose();
+        let mut seed = 11u64;
+        let mut uniform = || {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            ((seed >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+        };
+        let mut gauss = || {
+            let (u, v) = (uniform(), uniform());
+            (-2.0 * u.ln()).sqrt() * (2.0 * std::f64::consts::PI * v).cos()
+        };
+        let n = 400;
+        let truths: Vec<TimedPose> = (0..n).map(|i| truth(i as f64 * 0.5, 25_000.0)).collect();
+        let rows: Vec<NavRecord> = truths
+            .iter()
+            .map(|t| {
+                let e = l * Vector3::new(gauss(), gauss(), gauss());
+                let q = UnitQuaternion::from_scaled_axis(e) * t.q_ecef_cam;
+                row(TimedPose { q_ecef_cam: q, ..*t }, FixStatus::Fix)
+            })
+            .collect();
+        let (frames, _) = match_frames(&truths, &rows);
+        let cov = |scale: f64| -> Vec<TimedCovariance> {
+            truths
+                .iter()
+                .map(|t| {
+                    let mut ecef = nalgebra::Matrix6::identity() * 100.0;
+                    ecef.fixed_view_mut::<3, 3>(0, 0).copy_from(&(p * scale));
+                    TimedCovariance { t: t.t, ecef }
+                })
+                .collect()
+        };
+        let a = consistency(&frames, &cov(1.0)).unwrap().attitude.unwrap();
+        assert_eq!(a.fixes, n);
+        assert!(a.mean_nees > a.band[0] && a.mean_nees < a.band[1], "{a:?}");
+        assert!(a.max_sigma_distance > 3.0 && a.max_sigma_distance < 5.0, "{a:?}");
+        assert!(truths.iter().any(|t| t.t == a.max_sigma_distance_t), "{a:?}");
+        // The positions are exact: their NEES is zero whatever the attitude.
+        assert!(consistency(&frames, &cov(1.0)).unwrap().mean_nees < 1e-12);
+        // Reported attitude sigmas ten times too small.
+        let bad = consistency(&frames, &cov(0.01)).unwrap().attitude.unwrap();
+        assert!(bad.mean_nees > 10.0 * bad.band[1], "{bad:?}");
+        assert!(bad.max_sigma_distance > 30.0, "{bad:?}");
     }
 
     #[test]

@@ -26,7 +26,8 @@
 #   scripts/bench_databases.sh
 # Environment: OUT (default target/realistic), THREADS (trn build, default 2),
 #   NAV_ARGS (more trn navigate options, e.g. --no-inertial-focal), RESULTS
-#   (the results file's name in OUT/databases/, default results.md).
+#   (the results file's name in OUT/databases/, default results.md; with
+#   another name the runs' folders go to OUT/databases/<name without .md>/).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:-target/realistic}
@@ -101,6 +102,14 @@ done < "$suite"
 
 # Navigation on every database kind.
 jobs="$work/nav-jobs.txt"
+# The runs' folders: OUT/databases/nav-* for the default results file, else
+# OUT/databases/<its name without .md>/nav-*, so a variant (NAV_ARGS with
+# its own RESULTS) does not overwrite the default's runs.
+label=${RESULTS:-results.md}
+label=${label%.md}
+navdir=$work
+[ "$label" = results ] || navdir="$work/$label"
+mkdir -p "$navdir"
 : > "$jobs"
 while IFS=$'\t' read -r name flight db ortho dem opts; do
   w=${db##*/}; w=${w%.gpkg}
@@ -112,7 +121,9 @@ while IFS=$'\t' read -r name flight db ortho dem opts; do
 done < "$suite"
 navigate() {
   read -r name kind flight db extra <<< "$1"
-  local o="$work/nav-$name-$kind"
+  local o="$navdir/nav-$name-$kind"
+  # Nothing of an earlier run left to be read as this one's.
+  rm -rf "$o" "$o.json" "$o.log" "$o.eval.json"
   # A folder per run: matches.csv and covariance.csv are written next to
   # poses.csv, and `trn evaluate` reads them there (two runs at once must not
   # share them).
@@ -121,13 +132,13 @@ navigate() {
   "$trn" navigate --db "$db" --flight "$flight" --out "$o/poses.csv" $extra ${NAV_ARGS:-} > "$o.json" 2> "$o.log"
   "$trn" evaluate --flight "$flight" --poses "$o/poses.csv" --json "$o.eval.json" > /dev/null 2>&1
 }
-export -f navigate; export trn work NAV_ARGS
+export -f navigate; export trn navdir NAV_ARGS
 echo "== navigating $(wc -l < "$jobs") flight/database pairs" >&2
 tr '\n' '\0' < "$jobs" | xargs -0 -P 2 -I{} bash -c 'navigate "$1"' _ {}
 
-python3 - "$work/${RESULTS:-results.md}" "$work" "${rows[@]}" <<'PY'
+python3 - "$work/${RESULTS:-results.md}" "$navdir" "${rows[@]}" <<'PY'
 import json, os, sqlite3, statistics, sys
-out, work, rows = sys.argv[1], sys.argv[2], sys.argv[3:]
+out, navdir, rows = sys.argv[1], sys.argv[2], sys.argv[3:]
 def count(db):
     return sqlite3.connect(f"file:{db}?mode=ro", uri=True).execute("SELECT sum(template_count) FROM trn_levels").fetchone()[0]
 lines = ["| scenario | database | templates | median in view | min in view | frames >= 60 |", "|---|---|---:|---:|---:|---:|"]
@@ -142,7 +153,7 @@ for r in rows:
 lines += ["", "| scenario | database | trn fix | mean m | p95 m | worst m | mean NEES | NEES band | farthest fix (sigma) |", "|---|---|---:|---:|---:|---:|---:|---|---:|"]
 for name in names:
     for kind in ("default", "mission", "sun"):
-        ev = os.path.join(work, f"nav-{name}-{kind}.eval.json")
+        ev = os.path.join(navdir, f"nav-{name}-{kind}.eval.json")
         if not os.path.exists(ev):
             lines.append(f"| {name} | {kind} | failed | | | | | | |")
             continue

@@ -460,6 +460,45 @@ mod tests {
         NavRecord { pose, status, inliers: 10, matches: 12, ms: 5.0 }
     }
 
+    /// `n` true poses half a second apart and their fixes, each the truth
+    /// moved by `estimate` with a standard normal 3-vector (Box-Muller on a
+    /// fixed LCG seeded with `seed`).
+    fn drawn_fixes(
+        n: usize,
+        seed: u64,
+        mut estimate: impl FnMut(&TimedPose, Vector3<f64>) -> TimedPose,
+    ) -> (Vec<TimedPose>, Vec<FrameEval>) {
+        let mut seed = seed;
+        let mut uniform = || {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            ((seed >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+        };
+        let mut gauss = || {
+            let (u, v) = (uniform(), uniform());
+            (-2.0 * u.ln()).sqrt() * (2.0 * std::f64::consts::PI * v).cos()
+        };
+        let truths: Vec<TimedPose> = (0..n).map(|i| truth(i as f64 * 0.5, 25_000.0)).collect();
+        let rows: Vec<NavRecord> = truths
+            .iter()
+            .map(|t| row(estimate(t, Vector3::new(gauss(), gauss(), gauss())), FixStatus::Fix))
+            .collect();
+        let (frames, _) = match_frames(&truths, &rows);
+        (truths, frames)
+    }
+
+    /// A covariance row at each truth's time: `block` at rows and columns
+    /// `at..at + 3`, the rest of the diagonal `other`.
+    fn block_covariances(
+        truths: &[TimedPose],
+        at: usize,
+        block: nalgebra::Matrix3<f64>,
+        other: f64,
+    ) -> Vec<TimedCovariance> {
+        let mut ecef = nalgebra::Matrix6::identity() * other;
+        ecef.fixed_view_mut::<3, 3>(at, at).copy_from(&block);
+        truths.iter().map(|t| TimedCovariance { t: t.t, ecef }).collect()
+    }
+
     #[test]
     fn chi2_quantiles_match_tables() {
         // chi2(30): 16.791 and 46.979 (2.5% and 97.5%); chi2(300): 253.9, 349.9.
@@ -476,37 +515,12 @@ mod tests {
         // A correlated ECEF position covariance, errors drawn from it (Box-Muller
         // on a fixed LCG), one fix per frame.
         let l = nalgebra::Matrix3::new(30.0, 0.0, 0.0, 12.0, 20.0, 0.0, -5.0, 8.0, 10.0);
-        let p = l * l.transpose();
-        let mut seed = 7u64;
-        let mut uniform = || {
-            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            ((seed >> 11) as f64 + 0.5) / (1u64 << 53) as f64
-        };
-        let mut gauss = || {
-            let (u, v) = (uniform(), uniform());
-            (-2.0 * u.ln()).sqrt() * (2.0 * std::f64::consts::PI * v).cos()
-        };
         let n = 400;
-        let truths: Vec<TimedPose> = (0..n).map(|i| truth(i as f64 * 0.5, 25_000.0)).collect();
-        let rows: Vec<NavRecord> = truths
-            .iter()
-            .map(|t| {
-                let e = l * Vector3::new(gauss(), gauss(), gauss());
-                let est = trn_geodesy::Ecef(t.position.to_ecef().0 + e).to_geodetic();
-                row(TimedPose { position: est, ..*t }, FixStatus::Fix)
-            })
-            .collect();
-        let (frames, _) = match_frames(&truths, &rows);
-        let cov = |scale: f64| -> Vec<TimedCovariance> {
-            truths
-                .iter()
-                .map(|t| {
-                    let mut ecef = nalgebra::Matrix6::identity() * 1e-8;
-                    ecef.fixed_view_mut::<3, 3>(3, 3).copy_from(&(p * scale));
-                    TimedCovariance { t: t.t, ecef }
-                })
-                .collect()
-        };
+        let (truths, frames) = drawn_fixes(n, 7, |t, e| {
+            let est = trn_geodesy::Ecef(t.position.to_ecef().0 + l * e).to_geodetic();
+            TimedPose { position: est, ..*t }
+        });
+        let cov = |scale: f64| block_covariances(&truths, 3, l * l.transpose() * scale, 1e-8);
         let c = consistency(&frames, &cov(1.0)).unwrap();
         assert_eq!(c.fixes, n);
         assert!(c.band[0] < 3.0 && 3.0 < c.band[1], "{c:?}");
@@ -534,37 +548,12 @@ mod tests {
         // it (Box-Muller on a fixed LCG) and applied on the left of the true
         // attitude, as the navigator's covariance.csv perturbs it.
         let l = nalgebra::Matrix3::new(2e-3, 0.0, 0.0, 1e-3, 1.5e-3, 0.0, -5e-4, 4e-4, 1e-3);
-        let p = l * l.transpose();
-        let mut seed = 11u64;
-        let mut uniform = || {
-            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            ((seed >> 11) as f64 + 0.5) / (1u64 << 53) as f64
-        };
-        let mut gauss = || {
-            let (u, v) = (uniform(), uniform());
-            (-2.0 * u.ln()).sqrt() * (2.0 * std::f64::consts::PI * v).cos()
-        };
         let n = 400;
-        let truths: Vec<TimedPose> = (0..n).map(|i| truth(i as f64 * 0.5, 25_000.0)).collect();
-        let rows: Vec<NavRecord> = truths
-            .iter()
-            .map(|t| {
-                let e = l * Vector3::new(gauss(), gauss(), gauss());
-                let q = UnitQuaternion::from_scaled_axis(e) * t.q_ecef_cam;
-                row(TimedPose { q_ecef_cam: q, ..*t }, FixStatus::Fix)
-            })
-            .collect();
-        let (frames, _) = match_frames(&truths, &rows);
-        let cov = |scale: f64| -> Vec<TimedCovariance> {
-            truths
-                .iter()
-                .map(|t| {
-                    let mut ecef = nalgebra::Matrix6::identity() * 100.0;
-                    ecef.fixed_view_mut::<3, 3>(0, 0).copy_from(&(p * scale));
-                    TimedCovariance { t: t.t, ecef }
-                })
-                .collect()
-        };
+        let (truths, frames) = drawn_fixes(n, 11, |t, e| TimedPose {
+            q_ecef_cam: UnitQuaternion::from_scaled_axis(l * e) * t.q_ecef_cam,
+            ..*t
+        });
+        let cov = |scale: f64| block_covariances(&truths, 0, l * l.transpose() * scale, 100.0);
         let a = consistency(&frames, &cov(1.0)).unwrap().attitude.unwrap();
         assert_eq!(a.fixes, n);
         assert!(a.mean_nees > a.band[0] && a.mean_nees < a.band[1], "{a:?}");

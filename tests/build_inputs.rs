@@ -1346,3 +1346,57 @@ fn mission_sizing_and_coverage_in_the_report() {
     let points = want["points"].as_array().unwrap();
     assert!(points.len() >= 5 && points.iter().all(|p| p["landmarks"].as_u64().unwrap() > 0), "{want}");
 }
+
+/// The database does not depend on how many threads built it, nor on which
+/// thread finished first: a build with the default ladder of a 3000 × 3000 ortho (dozens of
+/// tiles over its pyramid levels) on 1, 2 and 3 threads gives the same
+/// templates under the same ids, and so does a second 2-thread build. (Before
+/// the tiles' templates were handed on in tile order, the ids followed the
+/// threads' finishing order and differed from run to run.)
+#[test]
+fn the_same_inputs_give_the_same_ids_on_any_number_of_threads() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let (ortho, dem) = common::synth(d, 3000, GSD, EAST, SEED);
+    let key = |b: &Built| -> Vec<(i64, u8, i64, i64, usize)> {
+        // Centres to the micro-degree and the pixels' sum: the same template.
+        b.templates
+            .iter()
+            .map(|t| {
+                let px: usize = t.pixels.iter().map(|&p| p as usize).sum();
+                (
+                    t.id,
+                    t.level,
+                    (t.center.lat_deg * 1e6).round() as i64,
+                    (t.center.lon_deg * 1e6).round() as i64,
+                    px,
+                )
+            })
+            .collect()
+    };
+    // The default ladder (every template size), one landmark per 32 pixels.
+    let default_ladder = ["--spacing", "32", "--dem-vertical", "ellipsoid"];
+    let runs: Vec<Built> = [("t1", "1"), ("t2", "2"), ("t2-again", "2"), ("t3", "3")]
+        .iter()
+        .map(|(name, n)| {
+            build(d, name, &[&ortho], &[&dem], &[&default_ladder[..], &["--threads", n]].concat())
+        })
+        .collect();
+    let reference = key(&runs[0]);
+    assert!(reference.len() > 500, "too few templates to tell an order: {}", reference.len());
+    let mut ids: Vec<i64> = reference.iter().map(|k| k.0).collect();
+    ids.sort_unstable();
+    assert_eq!(ids, (1..=reference.len() as i64).collect::<Vec<_>>(), "ids are not 1..=n");
+    for b in &runs[1..] {
+        let k = key(b);
+        assert_eq!(k.len(), reference.len(), "{}: another template count", b.name);
+        let first = k.iter().zip(&reference).position(|(a, r)| a != r);
+        assert!(
+            first.is_none(),
+            "{}: template {:?} where the 1-thread build has {:?}",
+            b.name,
+            k[first.unwrap()],
+            reference[first.unwrap()]
+        );
+    }
+}

@@ -1348,8 +1348,8 @@ fn mission_sizing_and_coverage_in_the_report() {
 }
 
 /// The database does not depend on how many threads built it, nor on which
-/// thread finished first: a build with the default ladder of a 3000 × 3000 ortho (dozens of
-/// tiles over its pyramid levels) on 1, 2 and 3 threads gives the same
+/// thread finished first: a build with the default ladder of a 3000 × 3000
+/// ortho (two dozen tiles over its pyramid levels) on 1, 2 and 3 threads gives the same
 /// templates under the same ids, and so does a second 2-thread build. (Before
 /// the tiles' templates were handed on in tile order, the ids followed the
 /// threads' finishing order and differed from run to run.)

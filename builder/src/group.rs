@@ -10,7 +10,6 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Mutex;
 
 use rayon::prelude::*;
-
 use tracing::info;
 use trn_landmark::lighting::SunLight;
 use trn_landmark::{GeoBox, Template};
@@ -301,7 +300,7 @@ pub(crate) fn build_group(
 /// Runs `tiles` in parallel (rayon's split, which keeps a thread on
 /// neighbouring tiles, whose blocks its GDAL handle has cached) and hands
 /// every tile's templates to `sink` in tile order: a tile finished before
-/// those ahead of it waits for them (measured: +4% peak memory on the
+/// those ahead of it waits for them (measured: +3-4% peak memory on the
 /// 100-megapixel benchmark, no time), so the database's ids follow the tiles,
 /// whichever thread finished first, and are the same for any number of
 /// threads. Returns each tile's levels in tile order; after an error the

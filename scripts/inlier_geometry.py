@@ -88,16 +88,16 @@ def main():
         rot, _ = cv2.Rodrigues(rvec)
         centre = origin - rot.T @ tvec.ravel()
         pnp.append(float(np.linalg.norm(centre - c_true)))
-    off = np.array(offsets)
+    off = np.array(offsets).reshape(-1, 2)
     half = len(pnp) // 2
     mean = lambda xs: float(np.mean(xs)) if len(xs) else math.nan
     print(
         json.dumps(
             {
                 "inliers": len(off),
-                "offset_u_px": float(off[:, 0].mean()),
-                "offset_v_px": float(off[:, 1].mean()),
-                "rms_px": float(np.sqrt((off**2).sum(axis=1).mean())),
+                "offset_u_px": mean(off[:, 0]),
+                "offset_v_px": mean(off[:, 1]),
+                "rms_px": math.sqrt(mean((off**2).sum(axis=1))),
                 "pnp_fixes": len(pnp),
                 "pnp_mean_m": mean(pnp),
                 "pnp_early_m": mean(pnp[:half]),

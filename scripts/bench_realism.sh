@@ -23,7 +23,7 @@
 #   scripts/bench_realism.sh
 # Environment: OUT (default target/realistic), FLIGHTS (names, space-separated;
 #   default the two low rockets), NAV_ARGS (more trn navigate options), PY
-#   (Python with OpenCV and pyproj, default .venv/bin/python).
+#   (Python with OpenCV, default .venv/bin/python).
 # Results in OUT/realism/results.md.
 set -euo pipefail
 cd "$(dirname "$0")/.."

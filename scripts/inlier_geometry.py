@@ -25,24 +25,17 @@ import sys
 
 import cv2
 import numpy as np
-from pyproj import Transformer
 
-TO_ECEF = Transformer.from_crs(4979, 4978, always_xy=True)
+# The baseline's WGS84 and quaternion helpers (this folder is on sys.path).
+from baseline_opencv import geodetic_to_ecef, q_to_rot
 
 
 def ecef(row):
-    return np.array(TO_ECEF.transform(float(row["lon"]), float(row["lat"]), float(row["h"])))
+    return geodetic_to_ecef(float(row["lat"]), float(row["lon"]), float(row["h"]))
 
 
 def r_ecef_cam(row):
-    w, x, y, z = (float(row[k]) for k in ("qw", "qx", "qy", "qz"))
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+    return q_to_rot([float(row[k]) for k in ("qw", "qx", "qy", "qz")])
 
 
 def main():

@@ -19,12 +19,21 @@
 # true camera (scripts/inlier_geometry.py): their mean offset from the true
 # pose's projection (px) and rms, and OpenCV's PnP on each fix's inliers
 # alone (its mean 3D error, over the first and second half of the fixes).
+# A second table splits the inliers by their landmark's shading share (how much
+# of its template's contrast relief shading could make, as `trn build` stores
+# it): per bin, the landmarks and the rms of each landmark's mean offset from
+# the true projection (the part of its error that repeats in every frame it is
+# seen in, what another sun moves).
 #
 #   scripts/bench_realism.sh
 # Environment: OUT (default target/realistic), FLIGHTS (names, space-separated;
-#   default the two low rockets), NAV_ARGS (more trn navigate options), PY
-#   (Python with OpenCV, default .venv/bin/python).
-# Results in OUT/realism/results.md.
+#   default the two low rockets), VARIANTS (which of the variants above,
+#   space-separated; default all five), NAV_ARGS (more trn navigate options), DB (a
+#   database to navigate on instead of the suite's, for FLIGHTS of one world:
+#   e.g. one built with `--sun`), LABEL (runs and results in
+#   OUT/realism/LABEL/ instead of OUT/realism/), PY (Python with OpenCV,
+#   default .venv/bin/python).
+# Results in OUT/realism/results.md (OUT/realism/LABEL/results.md).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:-target/realistic}
@@ -40,9 +49,22 @@ declare -A world_dem
 world_dem[sierra]=$real/sierra-dem.tif
 world_dem[saltlake]=$real/gsl-dem-draped.tif
 flights=${FLIGHTS:-sierra-rocket-200x150 sierra-rocket-640x480}
-variants=(shipped true-camera no-sun sun+180 no-realism)
+read -r -a variants <<< "${VARIANTS:-shipped true-camera no-sun sun+180 no-realism}"
+for v in "${variants[@]}"; do
+  case $v in shipped | true-camera | no-sun | sun+180 | no-realism) ;;
+    *) echo "VARIANTS: '$v' is not one of shipped, true-camera, no-sun, sun+180, no-realism" >&2; exit 1 ;;
+  esac
+done
 read -r -a nav_args <<< "${NAV_ARGS:-}"
-work="$OUT/realism"
+if [ -n "${LABEL:-}" ] && ! [[ "$LABEL" =~ ^[A-Za-z0-9._-]+$ ]]; then
+  echo "LABEL: '$LABEL' is not a plain name (letters, digits, . _ -)" >&2
+  exit 1
+fi
+work="$OUT/realism${LABEL:+/$LABEL}"
+if [ -n "${DB:-}" ] && [ ! -f "$DB" ]; then
+  echo "DB: no database at $DB" >&2
+  exit 1
+fi
 mkdir -p "$work"
 rows="$work/rows.tsv"
 : > "$rows"
@@ -50,6 +72,7 @@ for name in $flights; do
   line=$(awk -F'\t' -v n="$name" '$1 == n' "$suite")
   [ -n "$line" ] || { echo "FLIGHTS: $name is not in $suite" >&2; exit 1; }
   IFS=$'\t' read -r _ _ db ortho _ opts <<< "$line"
+  db=${DB:-$db}
   read -r -a opt_arr <<< "$opts"
   world=${name%%-*}
   for v in "${variants[@]}"; do
@@ -77,7 +100,7 @@ PY
     "$trn" navigate --db "$db" --flight "$d/flight" --out "$d/poses.csv" "${nav_args[@]}" \
       > "$d/report.json" 2> "$d/navigate.log"
     "$trn" evaluate --flight "$d/flight" --poses "$d/poses.csv" --json "$d/eval.json" > "$d/eval.txt" 2>&1
-    "$PY" scripts/inlier_geometry.py "$d/flight" "$d" > "$d/inliers.json"
+    "$PY" scripts/inlier_geometry.py "$d/flight" "$d" "$db" > "$d/inliers.json"
     printf '%s\t%s\t%s\n' "$name" "$v" "$d/eval.json" >> "$rows"
   done
 done
@@ -106,6 +129,19 @@ for r in open(rows):
         f"| {g['offset_u_px']:+.2f}, {g['offset_v_px']:+.2f} | {g['rms_px']:.2f} "
         f"| {g['pnp_mean_m']:.1f} ({g['pnp_early_m']:.1f}, {g['pnp_late_m']:.1f}) |"
     )
+lines += [
+    "",
+    "Inliers' offset that repeats, by their landmark's shading share: the rms over the landmarks of each "
+    "one's mean offset from the true projection (px; in brackets, the landmarks):",
+    "",
+    "| flight | variant | share < 0.2 | 0.2–0.4 | 0.4–0.6 | ≥ 0.6 |",
+    "|---|---|---:|---:|---:|---:|",
+]
+for r in open(rows):
+    name, variant, path = r.rstrip("\n").split("\t")
+    bins = json.load(open(path.replace("eval.json", "inliers.json"))).get("by_shading_share", [])
+    cells = [f"{b['systematic_px']:.2f} ({b['landmarks']})" if b["landmarks"] else "n/a" for b in bins] or ["n/a"] * 4
+    lines.append(f"| {name} | {variant} | " + " | ".join(cells) + " |")
 open(out, "w").write("\n".join(lines) + "\n")
 print("\n".join(lines))
 print(f"wrote {out}", file=sys.stderr)

@@ -43,11 +43,8 @@ PY=${PY:-.venv/bin/python}
 suite="$OUT/suite.tsv"
 [ -f "$suite" ] || { echo "no $suite: run scripts/bench_realistic.sh first" >&2; exit 1; }
 scen_dir=data-samples/scenarios/realistic
-real=data-samples/real
 # The worlds as bench_realistic.sh renders them.
-declare -A world_dem
-world_dem[sierra]=$real/sierra-dem.tif
-world_dem[saltlake]=$real/gsl-dem-draped.tif
+source scripts/realistic_worlds.sh
 flights=${FLIGHTS:-sierra-rocket-200x150 sierra-rocket-640x480}
 read -r -a variants <<< "${VARIANTS:-shipped true-camera no-sun sun+180 no-realism}"
 for v in "${variants[@]}"; do
@@ -71,7 +68,7 @@ rows="$work/rows.tsv"
 for name in $flights; do
   line=$(awk -F'\t' -v n="$name" '$1 == n' "$suite")
   [ -n "$line" ] || { echo "FLIGHTS: $name is not in $suite" >&2; exit 1; }
-  IFS=$'\t' read -r _ _ db ortho _ opts <<< "$line"
+  IFS=$'\t' read -r _ _ db ortho_file _ opts <<< "$line"
   db=${DB:-$db}
   read -r -a opt_arr <<< "$opts"
   world=${name%%-*}
@@ -95,7 +92,7 @@ elif variant == "no-realism":
 json.dump(s, open(out, "w"), indent=1)
 PY
     echo "== $name: $v" >&2
-    "$trn" simulate --ortho "$ortho" --dem "${world_dem[$world]}" "${opt_arr[@]}" \
+    "$trn" simulate --ortho "$ortho_file" --dem "${dem[$world]}" "${opt_arr[@]}" \
       --scenario "$d/scenario.json" --out "$d/flight" > "$d/simulate.json" 2> "$d/simulate.log"
     "$trn" navigate --db "$db" --flight "$d/flight" --out "$d/poses.csv" "${nav_args[@]}" \
       > "$d/report.json" 2> "$d/navigate.log"

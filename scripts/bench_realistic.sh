@@ -43,10 +43,8 @@ trn=target/release/trn
 mkdir -p "$OUT/db" "$OUT/flights"
 
 # world -> ortho, rendered DEM, build options
-declare -A ortho dem
-ortho[sierra]=$real/sierra-ortho-draped.tif; dem[sierra]=$real/sierra-dem.tif
-ortho[saltlake]=$real/gsl-landsat7.tif;      dem[saltlake]=$real/gsl-dem-draped.tif
-opts="--ortho-bands 3,2,1 --dem-vertical egm96"
+source scripts/realistic_worlds.sh
+opts=$world_opts
 read -r -a opt_arr <<< "$opts"
 
 world_of() { case "$1" in sierra-*) echo sierra ;; saltlake-*) echo saltlake ;; *) echo "$1: unknown world" >&2; exit 1 ;; esac; }

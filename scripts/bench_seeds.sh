@@ -39,11 +39,8 @@ trn=target/release/trn
 suite="$OUT/suite.tsv"
 [ -f "$suite" ] || { echo "no $suite: run scripts/bench_realistic.sh first" >&2; exit 1; }
 scen_dir=data-samples/scenarios/realistic
-real=data-samples/real
 # The worlds as bench_realistic.sh renders them.
-declare -A world_dem
-world_dem[sierra]=$real/sierra-dem.tif
-world_dem[saltlake]=$real/gsl-dem-draped.tif
+source scripts/realistic_worlds.sh
 declare -A db_of
 db_of[sierra]=${DB_SIERRA:-}
 db_of[saltlake]=${DB_SALTLAKE:-}
@@ -66,7 +63,7 @@ mkdir -p "$renders"
 rm -rf "$runs"
 mkdir -p "$runs"
 : > "$runs/jobs.tsv"
-while IFS=$'\t' read -r name _ db ortho _ opts; do
+while IFS=$'\t' read -r name _ db ortho_file _ opts; do
   if [ -n "${FLIGHTS:-}" ] && [[ " $FLIGHTS " != *" $name "* ]]; then continue; fi
   world=${name%%-*}
   [ -n "${db_of[$world]:-}" ] && db=${db_of[$world]}
@@ -89,7 +86,7 @@ s["seed"] = int(seed)
 json.dump(s, open(out, "w"), indent=1)
 PY
       read -r -a opt_arr <<< "$opts"
-      "$trn" simulate --ortho "$ortho" --dem "${world_dem[$world]}" "${opt_arr[@]}" \
+      "$trn" simulate --ortho "$ortho_file" --dem "${dem[$world]}" "${opt_arr[@]}" \
         --scenario "$f/scenario.json" --out "$f/flight.part" > "$f/simulate.json" 2> "$f/simulate.log"
       mv "$f/flight.part" "$f/flight"
     fi

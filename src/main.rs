@@ -282,6 +282,11 @@ struct NavigateArgs {
     /// Fewer RANSAC inliers reject the fix.
     #[arg(long, default_value_t = 8)]
     min_inliers: usize,
+    /// RANSAC's inlier threshold (px at full resolution; a coarse pyramid
+    /// level's scaled with it): a match farther than this from the pose's
+    /// projection of its landmark is an outlier.
+    #[arg(long, default_value_t = 2.0)]
+    ransac_threshold: f64,
     /// Inliers a smaller share of the correlation matches than this reject the
     /// fix (a chance consensus of wrong matches).
     #[arg(long, default_value_t = 0.3, value_parser = parse_share)]
@@ -741,6 +746,7 @@ fn nav_params(a: &NavigateArgs) -> trn_navigator::NavParams {
     let mut params = trn_navigator::NavParams { use_gyro: !a.no_gyro, ..Default::default() };
     params.alpha_max_deg = a.alpha_max;
     params.min_inliers = a.min_inliers;
+    params.ransac_threshold_px = a.ransac_threshold;
     params.min_inlier_share = a.min_inlier_share;
     params.max_height_jump_m = a.max_height_jump;
     params.max_landmarks = a.max_landmarks;

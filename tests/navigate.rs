@@ -589,6 +589,8 @@ fn bad_inputs_are_named() {
         ("--time-offset-sigma", "nan"),
         ("--track-sigma", "0"),
         ("--track-sigma", "nan"),
+        ("--ransac-threshold", "0"),
+        ("--ransac-threshold", "nan"),
     ] {
         let o = run(&["navigate", "--db", "x", "--flight", "y", "--out", "z", opt, value]);
         assert!(!o.status.success(), "{opt} {value} accepted");

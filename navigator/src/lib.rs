@@ -138,6 +138,7 @@ impl RunOptions {
             ("--accel-bias", p.accel_bias_m_s2),
             ("--map-tau", p.map_tau_s),
             ("--track-sigma", p.track.sigma_px),
+            ("--ransac-threshold", p.ransac_threshold_px),
         ] {
             if !positive(v) {
                 return bad(option, "must be a number > 0");

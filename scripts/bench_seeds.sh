@@ -44,6 +44,10 @@ source scripts/realistic_worlds.sh
 declare -A db_of
 db_of[sierra]=${DB_SIERRA:-}
 db_of[saltlake]=${DB_SALTLAKE:-}
+for w in sierra saltlake; do
+  [ -z "${db_of[$w]}" ] || [ -f "${db_of[$w]}" ] \
+    || { echo "DB_${w^^}: no database at ${db_of[$w]}" >&2; exit 1; }
+done
 seeds=${SEEDS:-101 102 103}
 label=${LABEL:-default}
 [[ "$label" =~ ^[A-Za-z0-9._-]+$ ]] || { echo "LABEL: '$label' is not a plain name (letters, digits, . _ -)" >&2; exit 1; }

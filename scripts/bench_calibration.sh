@@ -37,10 +37,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:-target/realistic}
-trn=target/release/trn
-[ -x "$trn" ] || cargo build --release --quiet --bin trn
-suite="$OUT/suite.tsv"
-[ -f "$suite" ] || { echo "no $suite: run scripts/bench_realistic.sh first" >&2; exit 1; }
+source scripts/realistic_suite.sh
 PY=${PY:-.venv/bin/python}
 work="$OUT/calibration"
 label=${RESULTS:-results.md}

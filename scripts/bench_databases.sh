@@ -31,10 +31,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:-target/realistic}
-trn=target/release/trn
-[ -x "$trn" ] || cargo build --release --quiet --bin trn
-suite="$OUT/suite.tsv"
-[ -f "$suite" ] || { echo "no $suite: run scripts/bench_realistic.sh first" >&2; exit 1; }
+source scripts/realistic_suite.sh
 work="$OUT/databases"
 mkdir -p "$work"
 rows=()

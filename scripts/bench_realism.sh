@@ -37,11 +37,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:-target/realistic}
-trn=target/release/trn
-[ -x "$trn" ] || cargo build --release --quiet --bin trn
+source scripts/realistic_suite.sh
 PY=${PY:-.venv/bin/python}
-suite="$OUT/suite.tsv"
-[ -f "$suite" ] || { echo "no $suite: run scripts/bench_realistic.sh first" >&2; exit 1; }
 scen_dir=data-samples/scenarios/realistic
 # The worlds as bench_realistic.sh renders them.
 source scripts/realistic_worlds.sh

@@ -34,10 +34,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:-target/realistic}
-trn=target/release/trn
-[ -x "$trn" ] || cargo build --release --quiet --bin trn
-suite="$OUT/suite.tsv"
-[ -f "$suite" ] || { echo "no $suite: run scripts/bench_realistic.sh first" >&2; exit 1; }
+source scripts/realistic_suite.sh
 scen_dir=data-samples/scenarios/realistic
 # The worlds as bench_realistic.sh renders them.
 source scripts/realistic_worlds.sh
@@ -152,7 +149,7 @@ for name, v in rows.items():
     fixes, frames = sum(f for _, f, _, _ in v), sum(n for _, _, n, _ in v)
     far = max(x for *_, x in v)
     lines.append(
-        f"| {name} | {mean:.1f} | {sd:.1f} | {min(means):.1f}–{max(means):.1f} "
+        f"| {name} | {mean:.1f} | {'n/a' if math.isnan(sd) else f'{sd:.1f}'} | {min(means):.1f}–{max(means):.1f} "
         f"| {100 * fixes / frames:.0f}% | {far:.1f} |"
     )
 lines += ["", f"Sum of the flights' means: {total:.1f} m"]

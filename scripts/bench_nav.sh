@@ -34,8 +34,11 @@
 #
 # The baseline's own database ("what a competent engineer would build for this
 # camera"): `trn build --ortho O --dem D [extra] --template-size S
-# --min-template-size S --spacing S --max-relief 1000 --max-hidden 1 --levels N`
-# (one template size, GSD doubling per level, no relief or occlusion test),
+# --min-template-size S --spacing S --max-relief 1000 --max-hidden 1 --levels N
+# --min-contrast 6 --min-shi-tomasi 2`
+# (one template size, GSD doubling per level, no relief or occlusion test; the
+# texture thresholds fixed at trn build's defaults before stop 51, so the
+# baseline is the one every earlier figure was measured against),
 # where, from camera.json (width, height, fx),
 # init.json (height, boresight) and the mission's altitude range:
 #   altitude range: the balloon's start_h_m/end_h_m from the flight's
@@ -178,7 +181,7 @@ for i in "${!names[@]}"; do
   rule=$(choose_db "$f" "$db" "$o/baseline-db.json" "${ortho_files[@]}") || { echo "$name: template-size rule failed" >&2; exit 1; }
   read -r S N <<< "$rule"
   build=(--ortho "${ortho_files[@]}" --dem "${dem_files[@]}" "${extra[@]}" --template-size "$S" --min-template-size "$S"
-         --spacing "$S" --max-relief 1000 --max-hidden 1 --levels "$N")
+         --spacing "$S" --max-relief 1000 --max-hidden 1 --levels "$N" --min-contrast 6 --min-shi-tomasi 2)
   key=$(printf '%s\n' "${build[@]}" | sha1sum | cut -c1-12)
   base="$OUT/baseline-db/$key.gpkg"
   if [ ! -f "$base" ]; then

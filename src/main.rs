@@ -142,10 +142,10 @@ struct BuildArgs {
     #[arg(long)]
     coverage_plan: Option<PathBuf>,
     /// Minimum grey-level standard deviation of a template.
-    #[arg(long, default_value_t = 6.0)]
+    #[arg(long, default_value_t = 4.0)]
     min_contrast: f32,
     /// Minimum Shi-Tomasi strength (smaller structure-tensor eigenvalue).
-    #[arg(long, default_value_t = 2.0)]
+    #[arg(long, default_value_t = 1.0)]
     min_shi_tomasi: f32,
     /// Uniqueness search radius (template pixels).
     #[arg(long, default_value_t = 8)]
@@ -285,11 +285,12 @@ struct NavigateArgs {
     /// RANSAC's inlier threshold (px at full resolution; a coarse pyramid
     /// level's scaled with it): a match farther than this from the pose's
     /// projection of its landmark is an outlier.
-    #[arg(long, default_value_t = 2.0)]
+    #[arg(long, default_value_t = 3.0)]
     ransac_threshold: f64,
     /// Inliers a smaller share of the correlation matches than this reject the
-    /// fix (a chance consensus of wrong matches).
-    #[arg(long, default_value_t = 0.3, value_parser = parse_share)]
+    /// fix (a chance consensus of wrong matches; 0.3 before the RANSAC
+    /// threshold went from 2 to 3 px, whose wider band admits more of them).
+    #[arg(long, default_value_t = 0.45, value_parser = parse_share)]
     min_inlier_share: f64,
     /// A fix whose height is farther than this from the predicted one (the
     /// last fix carried by the vertical velocity) rejects it (m); the gate

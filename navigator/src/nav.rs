@@ -71,8 +71,10 @@ pub struct NavParams {
     pub min_inliers: usize,
     /// A smaller share of the correlation matches among the inliers rejects
     /// the fix: a chance consensus of wrong matches (measured: 8-12 of 40-90
-    /// when the guess is 10 km off) rather than the landmarks (15 of 18 to
-    /// 200 of 210 on the realistic flights).
+    /// when the guess is 10 km off; 11 of 26 around a prediction 400 m off
+    /// after an accelerometer shock, 537 m from the truth, at the 3 px
+    /// RANSAC threshold) rather than the landmarks (15 of 18 to 200 of 210
+    /// on the realistic flights). 0.45 (0.3 at the 2 px threshold).
     pub min_inlier_share: f64,
     /// Inliers must spread over the image: over at least this many cells of
     /// `grid`, and with a spread (standard deviation along their narrowest
@@ -238,14 +240,14 @@ impl Default for NavParams {
             alpha_max_deg: 75.0,
             horizon_step_px: 10.0,
             min_inliers: 8,
-            min_inlier_share: 0.3,
+            min_inlier_share: 0.45,
             min_inlier_cells: 4,
             min_inlier_spread: 0.08,
             max_height_jump_m: 450.0,
             max_landmarks: 450,
             acquisition_budget_g: 30.0,
             grid: (8, 6),
-            ransac_threshold_px: 2.0,
+            ransac_threshold_px: 3.0,
             ncc: NccParams { min_peak: 0.5, max_second_ratio: 0.92, min_template_std: 2.0 },
             max_radius_px: 16,
             init_sigma_m: 300.0,
@@ -3703,10 +3705,11 @@ mod tests {
         assert_eq!(count_rejection(&params, &with(15, 20, 101, true)), None);
         assert_eq!(count_rejection(&params, &with(8, 10, 130, true)), None);
         assert_eq!(count_rejection(&params, &with(9, 17, 300, false)), None);
-        // About the bound (15 of 300): 16 stands, 14 does not.
-        assert_eq!(count_rejection(&params, &with(16, 40, 300, true)), None);
+        // About the bound (15 of 300): 16 stands, 14 does not (of 30
+        // matches, above the inlier share).
+        assert_eq!(count_rejection(&params, &with(16, 30, 300, true)), None);
         assert!(matches!(
-            count_rejection(&params, &with(14, 40, 300, true)),
+            count_rejection(&params, &with(14, 30, 300, true)),
             Some(Rejection::FoundShare { .. })
         ));
         // The other counts come first.

@@ -60,7 +60,7 @@ enum VerticalArg {
 
 /// The elevation models, as `trn build` and `trn simulate` take them
 /// ([`trn_raster::DemInputs`]).
-#[derive(clap::Args)]
+#[derive(clap::Args, Clone)]
 struct DemArgs {
     /// Elevation model(s): any GDAL raster, any CRS; tiles of one grid are read as one mosaic.
     #[arg(long = "dem", required = true, num_args = 1..)]
@@ -566,12 +566,12 @@ fn main() -> ExitCode {
     }
 }
 
-fn run_build(a: BuildArgs) -> anyhow::Result<()> {
-    set_threads(a.threads)?;
-    let cancel = cancel_flag()?;
-    let mut o = BuildOptions::new(a.orthos, Vec::new(), a.out);
-    o.dem = a.dem.inputs();
-    o.ortho_bands = a.ortho_bands;
+/// The builder's options from `trn build`'s (with none given but the inputs:
+/// `BuildOptions::new`'s defaults, which a test holds them to).
+fn build_options(a: &BuildArgs) -> anyhow::Result<BuildOptions> {
+    let mut o = BuildOptions::new(a.orthos.clone(), Vec::new(), a.out.clone());
+    o.dem = a.dem.clone().inputs();
+    o.ortho_bands = a.ortho_bands.clone();
     o.template_size = a.template_size;
     o.min_template_size = a.min_template_size;
     o.spacing_px = a.spacing;
@@ -606,6 +606,13 @@ fn run_build(a: BuildArgs) -> anyhow::Result<()> {
     o.max_hidden_share = a.max_hidden;
     o.suns = a.suns.clone();
     o.max_shading_share = a.max_shading;
+    Ok(o)
+}
+
+fn run_build(a: BuildArgs) -> anyhow::Result<()> {
+    set_threads(a.threads)?;
+    let cancel = cancel_flag()?;
+    let o = build_options(&a)?;
     // The plan is checked before the build: a bad one leaves nothing at --out.
     let plan = match &a.coverage_plan {
         Some(p) => {
@@ -1103,6 +1110,25 @@ mod tests {
         let Command::Navigate(a) = cli.command else { panic!("not navigate") };
         let from_cli = format!("{:?}", nav_params(&a));
         let library = format!("{:?}", trn_navigator::NavParams::default());
+        let differing: Vec<_> = from_cli
+            .split(", ")
+            .zip(library.split(", "))
+            .filter(|(c, l)| c != l)
+            .map(|(c, l)| format!("cli {c} / library {l}"))
+            .collect();
+        assert!(differing.is_empty(), "defaults differ: {differing:#?}");
+    }
+
+    /// `trn build`'s option defaults are the builder's own, likewise.
+    #[test]
+    fn build_defaults_are_the_builders() {
+        let cli =
+            Cli::try_parse_from(["trn", "build", "--ortho", "o.tif", "--dem", "d.tif", "--out", "l.gpkg"])
+                .expect("minimal build arguments parse");
+        let Command::Build(a) = cli.command else { panic!("not build") };
+        let library = BuildOptions::new(vec!["o.tif".into()], vec!["d.tif".into()], "l.gpkg".into());
+        let from_cli = format!("{:?}", build_options(&a).expect("options"));
+        let library = format!("{library:?}");
         let differing: Vec<_> = from_cli
             .split(", ")
             .zip(library.split(", "))

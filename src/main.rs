@@ -1100,6 +1100,17 @@ fn run_coverage(a: CoverageArgs) -> anyhow::Result<()> {
 mod tests {
     use super::*;
 
+    /// Each field of two `{:?}` renderings of one struct alike.
+    fn assert_same_fields(from_cli: &str, library: &str) {
+        let differing: Vec<_> = from_cli
+            .split(", ")
+            .zip(library.split(", "))
+            .filter(|(c, l)| c != l)
+            .map(|(c, l)| format!("cli {c} / library {l}"))
+            .collect();
+        assert!(differing.is_empty(), "defaults differ: {differing:#?}");
+    }
+
     /// `trn navigate`'s option defaults are the navigator's own: one value
     /// each, whichever side a change moves.
     #[test]
@@ -1110,13 +1121,7 @@ mod tests {
         let Command::Navigate(a) = cli.command else { panic!("not navigate") };
         let from_cli = format!("{:?}", nav_params(&a));
         let library = format!("{:?}", trn_navigator::NavParams::default());
-        let differing: Vec<_> = from_cli
-            .split(", ")
-            .zip(library.split(", "))
-            .filter(|(c, l)| c != l)
-            .map(|(c, l)| format!("cli {c} / library {l}"))
-            .collect();
-        assert!(differing.is_empty(), "defaults differ: {differing:#?}");
+        assert_same_fields(&from_cli, &library);
     }
 
     /// `trn build`'s option defaults are the builder's own, likewise.
@@ -1129,12 +1134,6 @@ mod tests {
         let library = BuildOptions::new(vec!["o.tif".into()], vec!["d.tif".into()], "l.gpkg".into());
         let from_cli = format!("{:?}", build_options(&a).expect("options"));
         let library = format!("{library:?}");
-        let differing: Vec<_> = from_cli
-            .split(", ")
-            .zip(library.split(", "))
-            .filter(|(c, l)| c != l)
-            .map(|(c, l)| format!("cli {c} / library {l}"))
-            .collect();
-        assert!(differing.is_empty(), "defaults differ: {differing:#?}");
+        assert_same_fields(&from_cli, &library);
     }
 }

@@ -45,7 +45,10 @@
 #     scenario.json, else the min/max height of truth.csv (the mission plan's
 #     altitude profile, known in advance; nothing else is read from it), always
 #     together with init.json's height; above the terrain height (median
-#     template height of trn's database within 0.1 deg of the init position);
+#     height of the baseline's own DEM within 0.1 deg of the init position,
+#     made ellipsoidal by the DEM's datum: --dem-vertical in the extra build
+#     options, EGM96 when they do not say; until stop 52 it was the median
+#     template height of trn's database there, which moved with trn's defaults);
 #   incidence i: angle of init.json's boresight from the local vertical (<= 70 deg);
 #   image GSD at height H above the terrain: g(H) = H / cos i / fx / sqrt(cos i);
 #   typical GSD g_typ = g(geometric mean of the lowest and highest height);
@@ -116,13 +119,13 @@ if command -v taskset >/dev/null; then pin_trn=(taskset -c "$CORE_TRN"); pin_ocv
 mkdir -p "$OUT/baseline-db"
 
 # The template-size rule (see the comment above): prints "S N" and writes the details as JSON.
-choose_db() { # flight trn_db json_out ortho...
-  local f=$1 d=$2 j=$3; shift 3
-  "$PY" - "$f" "$d" "$j" "$@" <<'EOF'
+choose_db() { # flight json_out dem_vertical "ortho..." "dem..."
+  "$PY" - "$@" <<'EOF'
 import csv, json, math, os, subprocess, sys
 sys.path.insert(0, "scripts")
-from benchlib import boresight_cos_from_vertical, terrain_height
-flight, db, jout, orthos = sys.argv[1], sys.argv[2], sys.argv[3], sys.argv[4:]
+from benchlib import boresight_cos_from_vertical, dem_terrain_height
+flight, jout, vertical = sys.argv[1], sys.argv[2], sys.argv[3]
+orthos, dems = sys.argv[4].split(), sys.argv[5].split()
 cam = json.load(open(os.path.join(flight, "camera.json")))
 init = json.load(open(os.path.join(flight, "init.json")))
 w, h, fx = int(cam["width"]), int(cam["height"]), float(cam["fx"])
@@ -138,7 +141,7 @@ elif os.path.exists(os.path.join(flight, "truth.csv")):
     if hs:
         heights += [min(hs), max(hs)]
         source = "init.json + truth.csv altitude range"
-terrain = terrain_height(db, lat, lon)
+terrain = dem_terrain_height(dems, lat, lon, vertical)
 # Boresight incidence from init.json's attitude.
 cos_i = max(boresight_cos_from_vertical(init["q_ecef_cam"], lat, lon), math.cos(math.radians(70.0)))
 def gsd(agl):
@@ -163,6 +166,7 @@ mag = 10 ** (math.floor(math.log10(ortho_gsd)) - 2)
 base = math.ceil(ortho_gsd / mag - 1e-9) * mag
 N = max(1, min(12, 1 + math.floor(math.log2(G / base) + 1e-9)))
 json.dump({"heights_m": [min(heights), max(heights)], "heights_from": source, "terrain_h_m": terrain,
+           "terrain_from": f"median of the DEM within 0.1 deg ({vertical} heights made ellipsoidal)",
            "incidence_deg": math.degrees(math.acos(cos_i)), "image_gsd_typ_m": g_typ, "image_gsd_high_m": g_hi,
            "ortho_gsd_m": ortho_gsd, "target_px": T, "template_size": S, "spacing": S, "max_gsd_m": G, "levels": N},
           open(jout, "w"), indent=2)
@@ -178,7 +182,10 @@ for i in "${!names[@]}"; do
   read -r -a ortho_files <<< "${orthos[$i]}"
   read -r -a dem_files <<< "${dems[$i]}"
   read -r -a extra <<< "${extras[$i]}"
-  rule=$(choose_db "$f" "$db" "$o/baseline-db.json" "${ortho_files[@]}") || { echo "$name: template-size rule failed" >&2; exit 1; }
+  vertical=egm96  # trn build's DEM datum for these sources: --dem-vertical in the extra options, else EGM96
+  for k in "${!extra[@]}"; do [ "${extra[$k]}" = --dem-vertical ] && vertical=${extra[$((k + 1))]:-egm96}; done
+  rule=$(choose_db "$f" "$o/baseline-db.json" "$vertical" "${orthos[$i]}" "${dems[$i]}") \
+    || { echo "$name: template-size rule failed" >&2; exit 1; }
   read -r S N <<< "$rule"
   build=(--ortho "${ortho_files[@]}" --dem "${dem_files[@]}" "${extra[@]}" --template-size "$S" --min-template-size "$S"
          --spacing "$S" --max-relief 1000 --max-hidden 1 --levels "$N" --min-contrast 6 --min-shi-tomasi 2)

@@ -70,9 +70,12 @@ beyond_m = beyond_sigma = 0
 worst_all = (0.0, "")
 for row in rows:
     r, b, run = row.split(" ", 2)
-    line = [l for l in open(f"{run}/results.md") if l.startswith(f"| {filt} |")][0]
-    cells = [c.strip() for c in line.strip().strip("|").split("|")]
-    n_fix, worst = int(cells[7]), cells[8]
+    # bench_outage.sh's table, its columns found by their headers.
+    table = [[c.strip() for c in l.strip().strip("|").split("|")]
+             for l in open(f"{run}/results.md") if l.startswith("|")]
+    head, cells = table[0], next(r for r in table if r[0] == filt)
+    col = {h: i for i, h in enumerate(head)}
+    n_fix, worst = int(cells[col["fixes in the outage"]]), cells[col["worst of them (m)"]]
     c = json.load(open(f"{run}/{filt}/eval.json"))["runs"][0].get("consistency", {})
     far, far_t = c.get("max_sigma_distance", float("nan")), c.get("max_sigma_distance_t", float("nan"))
     w = float(worst) if worst != "none" else 0.0

@@ -2,7 +2,10 @@
 bench_databases.sh): the terrain height under a flight from its landmark
 database or from a DEM, and a camera's boresight against the local vertical."""
 import math
+import os
 import sqlite3
+import subprocess
+import tempfile
 
 
 def terrain_height(db, lat, lon, reach_deg=0.1):
@@ -25,9 +28,6 @@ def dem_terrain_height(dems, lat, lon, vertical="egm96", reach_deg=0.1):
     cells are skipped; 0 when no cell is valid. Independent of any landmark
     database, so a benchmark's rule that uses it does not move when trn's
     database does."""
-    import os
-    import subprocess
-    import tempfile
     hs = []
     with tempfile.TemporaryDirectory() as tmp:
         for k, dem in enumerate(dems):

@@ -408,6 +408,15 @@ struct NavigateArgs {
     /// ground sample distance): a narrow view trades a tilt for a shift.
     #[arg(long)]
     map_att_sigma: Option<f64>,
+    /// ... and each landmark's own error, alike in every image that sees it
+    /// (px, 1 sigma; 0: not modelled): what it gives the pose of a fix's
+    /// view beyond the offset above (up to 5 of its sigmas) joins the
+    /// offset, so a narrow view's fixes, whose few landmarks trade a tilt
+    /// for a shift, move the offset and not the pose (0.5 keeps the fixes
+    /// of a hole in the cloud nearer the truth; off by default: it slows
+    /// the 200x150 rocket's first fixes, see the README)
+    #[arg(long, default_value_t = 0.0)]
+    map_view_sigma: f64,
     /// Camera-IMU time offset the inertial filter estimates: its prior
     /// (ms, 1 sigma; 0: the stamps are trusted).
     #[arg(long, default_value_t = 10.0)]
@@ -772,6 +781,7 @@ fn nav_params(a: &NavigateArgs) -> trn_navigator::NavParams {
     params.map_sigma_m = a.map_sigma;
     params.map_tau_s = a.map_tau;
     params.map_att_sigma_deg = a.map_att_sigma;
+    params.map_view_sigma_px = a.map_view_sigma;
     params.time_offset_sigma_s = a.time_offset_sigma / 1e3;
     params.prior_gated_update = !a.no_prior_gated_update;
     params.track_update = !a.no_track_update;

@@ -591,6 +591,8 @@ fn bad_inputs_are_named() {
         ("--map-att-sigma", "11"),
         ("--map-att-sigma", "nan"),
         ("--map-tau", "0"),
+        ("--map-view-sigma", "nan"),
+        ("--map-view-sigma", "inf"),
         ("--time-offset-sigma", "nan"),
         ("--track-sigma", "0"),
         ("--track-sigma", "nan"),

@@ -56,7 +56,13 @@
 //! turns the pose the images see (`q_apparent = exp(m_theta) q_true`,
 //! [`InsErrors::map_att_sigma_rad`]): a narrow view trades a tilt for a
 //! shift, and the map's errors move both, so the fixes' tilt wander is not
-//! taken for gyro drift.
+//! taken for gyro drift. Optionally it has a *view term* besides
+//! ([`InsFilter::set_map_view`], [`InsFilter::map_view_excess`]): what each
+//! landmark's own error, the same in every image that sees it, gives the
+//! pose of the view in hand beyond that isotropic prior. A wide view's is
+//! within the prior; a narrow view's few landmarks move its pose along the
+//! tilt-for-shift trade by hundreds of metres, and with the term the fixes
+//! of such a view move the offset along it, not the pose.
 //!
 //! **Update** ([`InsFilter::condition_on_pose`]): the image measures the
 //! apparent camera pose `[dtheta; dr + dm]`. A refinement of the matches with
@@ -78,6 +84,10 @@ use trn_geodesy::{Ecef, EARTH_RATE_RAD_S};
 use trn_vision::pnp::rotation_vector;
 
 use crate::propagate::{ends_gap, for_each_segment, strapdown_increment};
+
+/// The most the map offset's view term ([`InsFilter::map_view_excess`])
+/// adds along any direction, in sigmas of the offset's isotropic prior.
+pub const MAP_VIEW_CAP_SIGMAS: f64 = 5.0;
 
 /// Dimension of the error state.
 pub const N: usize = 25;
@@ -363,6 +373,16 @@ pub struct InsFilter {
     /// its covariance before (the bias state stands for the unmeasured
     /// rate's error there).
     bias_in_gap: Option<(Vector3<f64>, Matrix3<f64>)>,
+    /// The map offset's view term ([`Self::set_map_view`]): the stationary
+    /// covariance (`[dm_theta; dm]`, as an apparent pose's) that the
+    /// landmarks' own errors give the pose of the view last seen, on top of
+    /// the isotropic prior.
+    map_view: Matrix6<f64>,
+    /// The stationary covariance that term gave the offset as it is now:
+    /// grown at once with a view that narrows, decaying with the offset's
+    /// correlation time toward the current term when the view widens
+    /// (what [`Self::map_offset_distance`] measures the estimate against).
+    map_view_prior: Matrix6<f64>,
 }
 
 /// The gyro's mean rate (rad/s, IMU frame) over the last `window_s` of the
@@ -483,6 +503,8 @@ impl InsFilter {
             gap_crossed_s: 0.0,
             bias_at_log_end: None,
             bias_in_gap: None,
+            map_view: Matrix6::zeros(),
+            map_view_prior: Matrix6::zeros(),
         }
     }
 
@@ -828,6 +850,9 @@ impl InsFilter {
         for i in 0..N {
             p[(i, i)] += acc.q[i];
         }
+        let fresh = 1.0 - acc.map_decay * acc.map_decay;
+        add_map_block(p, &(self.map_view * fresh));
+        self.map_view_prior = self.map_view_prior * (1.0 - fresh) + self.map_view * fresh;
         *acc = Accumulated::default();
     }
 
@@ -1150,9 +1175,78 @@ impl InsFilter {
     /// inertial state is more likely wrong.
     pub fn map_offset_distance(&self) -> f64 {
         let (sm, sa) = self.map_sigmas();
+        if self.map_view_prior != Matrix6::zeros() {
+            // The prior with the view's term: a full covariance.
+            let mut prior = self.map_view_prior;
+            for i in 0..3 {
+                prior[(i, i)] += sa * sa;
+                prior[(i + 3, i + 3)] += sm * sm;
+            }
+            let x = Vector6::new(
+                self.state.map_offset_att_rad.x,
+                self.state.map_offset_att_rad.y,
+                self.state.map_offset_att_rad.z,
+                self.state.map_offset_ecef_m.x,
+                self.state.map_offset_ecef_m.y,
+                self.state.map_offset_ecef_m.z,
+            );
+            // Parts not modelled (a zero sigma and no view term) count nothing.
+            let keep: Vec<usize> = (0..6).filter(|&i| prior[(i, i)] > 0.0).collect();
+            let sub = DMatrix::from_fn(keep.len(), keep.len(), |a, b| prior[(keep[a], keep[b])]);
+            let xs = DVector::from_fn(keep.len(), |a, _| x[keep[a]]);
+            return match sub.cholesky() {
+                Some(c) => xs.dot(&c.solve(&xs)),
+                None => f64::INFINITY,
+            };
+        }
         let part =
             |v: &Vector3<f64>, sigma: f64| if sigma > 0.0 { v.norm_squared() / (sigma * sigma) } else { 0.0 };
         part(&self.state.map_offset_ecef_m, sm) + part(&self.state.map_offset_att_rad, sa)
+    }
+
+    /// The map offset's view term for a view whose landmarks' own errors
+    /// give its pose the covariance `pose_cov` (`[dtheta; dp]`, rad and m):
+    /// the part of it beyond the isotropic prior
+    /// ([`InsErrors::map_sigma_m`], [`InsErrors::map_att_sigma_rad`]: a wide
+    /// view's own errors lie within it and add nothing), at most
+    /// [`MAP_VIEW_CAP_SIGMAS`] of that prior's sigmas along any direction (a
+    /// view of a handful of landmarks would otherwise make the offset, and
+    /// with it the search and the gate, kilometres wide). Without the
+    /// prior (both sigmas 0): nothing.
+    pub fn map_view_excess(&self, pose_cov: &Matrix6<f64>) -> Matrix6<f64> {
+        let (sm, sa) = self.map_sigmas();
+        if !(sm > 0.0 && sa > 0.0) {
+            return Matrix6::zeros();
+        }
+        // In the prior's sigmas, the prior is the identity.
+        let d = Vector6::new(sa, sa, sa, sm, sm, sm);
+        let w = Matrix6::from_fn(|i, j| pose_cov[(i, j)] / (d[i] * d[j]));
+        let e = ((w + w.transpose()) * 0.5).symmetric_eigen();
+        let cap2 = MAP_VIEW_CAP_SIGMAS * MAP_VIEW_CAP_SIGMAS;
+        let mut c = Matrix6::zeros();
+        for (k, &l) in e.eigenvalues.iter().enumerate() {
+            let u = e.eigenvectors.column(k);
+            c += u * u.transpose() * (l - 1.0).clamp(0.0, cap2);
+        }
+        Matrix6::from_fn(|i, j| c[(i, j)] * d[i] * d[j])
+    }
+
+    /// Sets the map offset's view term: `view` (`[dm_theta; dm]`, rad and
+    /// m, as an apparent pose's covariance) is the stationary covariance
+    /// the landmarks' own errors give the pose of the view now seen, on top
+    /// of the isotropic prior ([`InsErrors::map_sigma_m`],
+    /// [`InsErrors::map_att_sigma_rad`]). A narrow view trades a tilt for a
+    /// shift: the few landmarks' errors, the same from frame to frame, move
+    /// the pose it gives along that trade by far more than a wide view's.
+    /// What the new term adds to the old is added to the offset's
+    /// covariance at once (a view that narrows brings its landmarks' errors
+    /// with it); from then on it is the offset's process noise, as the
+    /// prior is.
+    pub fn set_map_view(&mut self, view: &Matrix6<f64>) {
+        let grown = positive_part(&(view - self.map_view_prior));
+        add_map_block(&mut self.covariance, &grown);
+        self.map_view_prior += grown;
+        self.map_view = (view + view.transpose()) * 0.5;
     }
 
     /// Restarts the map offset when its estimate is not to be believed
@@ -1174,6 +1268,7 @@ impl InsFilter {
         uncorrelate(&mut self.covariance, MAP_ATT..MAP_ATT + 3);
         block(&mut self.covariance, MAP, sm);
         block(&mut self.covariance, MAP_ATT, sa);
+        add_map_block(&mut self.covariance, &self.map_view_prior.clone());
         self.inflate(factor);
         let worst = (VEL..VEL + 3).map(|i| self.covariance[(i, i)]).fold(0.0, f64::max).sqrt();
         if worst < velocity_sigma_m_s && worst > 0.0 {
@@ -1314,6 +1409,33 @@ impl InsFilter {
         p.fixed_view_mut::<6, 6>(ATT, ATT).copy_from(&((pose_block + pose_block.transpose()) * 0.5));
         self.covariance = p;
     }
+}
+
+/// The map offset's six states in an apparent pose's order
+/// (`[dm_theta; dm]`, as `[dtheta; dp]`).
+const MAP_BLOCK: [usize; 6] = [MAP_ATT, MAP_ATT + 1, MAP_ATT + 2, MAP, MAP + 1, MAP + 2];
+
+/// Adds `c` (in [`MAP_BLOCK`]'s order) to the map offset's block of `p`.
+fn add_map_block(p: &mut Covariance, c: &Matrix6<f64>) {
+    for (a, &i) in MAP_BLOCK.iter().enumerate() {
+        for (b, &j) in MAP_BLOCK.iter().enumerate() {
+            p[(i, j)] += c[(a, b)];
+        }
+    }
+}
+
+/// The part of a symmetric `d` that adds variance: its eigen-decomposition
+/// with the negative eigenvalues dropped.
+fn positive_part(d: &Matrix6<f64>) -> Matrix6<f64> {
+    let e = ((d + d.transpose()) * 0.5).symmetric_eigen();
+    let mut out = Matrix6::zeros();
+    for (k, &l) in e.eigenvalues.iter().enumerate() {
+        if l > 0.0 {
+            let u = e.eigenvectors.column(k);
+            out += u * u.transpose() * l;
+        }
+    }
+    out
 }
 
 /// Zeroes the rows and columns of `range` in `p` (their variances too).
@@ -2641,5 +2763,67 @@ mod tests {
         assert_eq!(k.covariance[(MAP, MAP)], 400.0);
         assert_eq!(k.covariance[(POS, MAP)], 0.0);
         assert_eq!(k.covariance[(MAP_ATT, MAP_ATT)], 0.0);
+    }
+
+    #[test]
+    fn a_narrow_views_term_joins_the_map_offset_beyond_its_prior() {
+        let turn = Turn::new();
+        let mut f = InsFilter::new(turn.state(0.0), &init(), errors_with_map_offset());
+        let (sm, sa) = f.map_sigmas();
+        let prior =
+            Matrix6::from_diagonal(&Vector6::new(sa * sa, sa * sa, sa * sa, sm * sm, sm * sm, sm * sm));
+        // A wide view's own errors lie within the prior: nothing to add.
+        assert_eq!(f.map_view_excess(&(prior * 0.5)), Matrix6::zeros());
+        // Twice the prior's sigmas everywhere: three priors more.
+        let twice = f.map_view_excess(&(prior * 4.0));
+        assert!((twice - prior * 3.0).norm() <= 1e-9 * prior.norm(), "{twice}");
+        // A narrow view: a tilt about east traded for a shift north at 30
+        // km, 0.5 deg and 262 m along it (6.5 of the prior's sigmas in both
+        // parts), well fixed across it.
+        let mut u = Vector6::new(0.5f64.to_radians(), 0.0, 0.0, 0.0, 30e3 * 0.5f64.to_radians(), 0.0);
+        let narrow = u * u.transpose() + prior * 0.25;
+        let term = f.map_view_excess(&narrow);
+        // Along the trade, capped at MAP_VIEW_CAP_SIGMAS of the prior's
+        // (normalized: the direction has (6.5, 6.5) sigmas, 9.2 in all).
+        let d = Vector6::new(sa, sa, sa, sm, sm, sm);
+        let un = u.component_div(&d).normalize();
+        let along = Matrix6::from_fn(|i, j| term[(i, j)] / (d[i] * d[j]));
+        let along_var = un.dot(&(along * un));
+        assert!((along_var - MAP_VIEW_CAP_SIGMAS.powi(2)).abs() < 1e-6, "{along_var}");
+        // Nothing across it.
+        let across = Vector6::new(0.0, 0.0, 0.0, 1.0, 0.0, 0.0);
+        assert!(across.dot(&(along * across)).abs() < 1e-9);
+        // Set: the offset's covariance grows by the term at once...
+        let before = f.covariance;
+        f.set_map_view(&term);
+        let grown = Matrix6::from_fn(|a, b| {
+            f.covariance[(MAP_BLOCK[a], MAP_BLOCK[b])] - before[(MAP_BLOCK[a], MAP_BLOCK[b])]
+        });
+        assert!((grown - term).norm() <= 1e-9 * term.norm(), "{grown}");
+        // ... once: the same view again adds nothing.
+        let once = f.covariance;
+        f.set_map_view(&term);
+        assert!((f.covariance - once).norm() <= 1e-9 * once.norm());
+        // ... and an offset along the trade at the term's size is within
+        // the prior the distance measures (it would be 27 sigmas^2 beyond
+        // the isotropic prior alone).
+        u = u * (MAP_VIEW_CAP_SIGMAS / u.component_div(&d).norm());
+        f.state.map_offset_att_rad = Vector3::new(u[0], u[1], u[2]);
+        f.state.map_offset_ecef_m = Vector3::new(u[3], u[4], u[5]);
+        let d2 = f.map_offset_distance();
+        assert!(d2 < 1.05 && d2 > 0.9, "{d2}");
+        // Without updates the offset settles at prior + term (its process
+        // noise), even after the view widens: the term then decays with the
+        // offset's correlation time, as the distance's prior does.
+        let (imu, _, _) = turn.imu(100.0, 61.0, None);
+        let mut g = f.clone();
+        g.propagate(60.0, &imu);
+        let settled = Matrix6::from_fn(|a, b| g.covariance[(MAP_BLOCK[a], MAP_BLOCK[b])]);
+        assert!((settled - (prior + term)).norm() < 0.02 * (prior + term).norm(), "{settled}");
+        f.set_map_view(&Matrix6::zeros());
+        assert_eq!(f.map_offset_distance(), d2);
+        f.propagate(60.0, &imu);
+        let settled = Matrix6::from_fn(|a, b| f.covariance[(MAP_BLOCK[a], MAP_BLOCK[b])]);
+        assert!((settled - prior).norm() < 0.02 * prior.norm(), "{settled}");
     }
 }

@@ -153,6 +153,9 @@ impl RunOptions {
         if !p.map_att_sigma_deg.is_none_or(|d| non_negative(d) && d <= 10.0) {
             return bad("--map-att-sigma", "must be degrees within 0..10");
         }
+        if !non_negative(p.map_view_sigma_px) {
+            return bad("--map-view-sigma", "must be pixels >= 0 (0: not modelled)");
+        }
         if let Some(c) = &p.calibration {
             for (option, v) in [
                 ("--focal-sigma", c.focal_sigma_rel),

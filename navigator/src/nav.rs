@@ -172,6 +172,15 @@ pub struct NavParams {
     /// inliers' ground sample distance): the rotation the database's errors
     /// give the pose the images see (a narrow view's tilt for its shift).
     pub map_att_sigma_deg: Option<f64>,
+    /// The map offset's view term: each landmark's own error (px per
+    /// coordinate, 1 sigma; 0: not modelled), the same in every image that
+    /// sees it and independent between landmarks. What it gives the pose of
+    /// the view of an accepted fix beyond the offset's isotropic prior
+    /// ([`crate::ins::InsFilter::map_view_excess`]: a narrow view's few
+    /// landmarks move its pose along the tilt-for-shift trade by hundreds
+    /// of metres, a wide view's not at all) joins the map offset, so the
+    /// fixes of a narrow view move the offset there and not the pose.
+    pub map_view_sigma_px: f64,
     /// Prior 1-sigma of the camera-IMU time offset (s) the inertial filter
     /// estimates (an image stamped `t` exposed at `t + offset`); 0: none.
     pub time_offset_sigma_s: f64,
@@ -277,6 +286,7 @@ impl Default for NavParams {
             map_sigma_m: None,
             map_tau_s: 10.0,
             map_att_sigma_deg: None,
+            map_view_sigma_px: 0.0,
             time_offset_sigma_s: 0.01,
             prior_gated_update: true,
             track_update: true,
@@ -1655,6 +1665,15 @@ impl<'a> Navigator<'a> {
                 }
             }
             _ => {
+                // The map offset as this view's landmarks move its pose.
+                if self.params.map_view_sigma_px > 0.0 {
+                    let (_, pts) = inliers_of(sol);
+                    let sigma = self.params.map_view_sigma_px;
+                    if let Some(c) = landmark_error_pose_covariance(&self.camera, &sol.pose, &pts, sigma) {
+                        let view = f.map_view_excess(&c);
+                        f.set_map_view(&view);
+                    }
+                }
                 // Where the filter carries the focal length or the principal
                 // point, the frame's pose moves with their errors (the
                 // columns of the others meet zero variances).
@@ -3371,6 +3390,27 @@ pub(crate) fn chi2_quantile(k: usize, z: f64) -> f64 {
     k * (1.0 - a + z * a.sqrt()).powi(3)
 }
 
+/// The covariance (`[dtheta; dp]`, rad and m, ECEF) that errors of
+/// `sigma_px` per landmark and coordinate, independent between landmarks,
+/// give the pose `pose` solved from `landmarks` by least squares:
+/// `sigma^2 (J^T J)^-1`, `J` the landmarks' pixels' Jacobian in the pose
+/// (`trn_vision::pnp::project_with_jacobian`). `None` when a landmark is
+/// behind the camera or the landmarks do not fix the pose.
+fn landmark_error_pose_covariance(
+    camera: &CameraModel,
+    pose: &CameraPose,
+    landmarks: &[Vector3<f64>],
+    sigma_px: f64,
+) -> Option<Matrix6<f64>> {
+    let mut jtj = Matrix6::zeros();
+    for x in landmarks {
+        let (_, j) = project_with_jacobian(camera, pose, x)?;
+        jtj += j.transpose() * j;
+    }
+    let inv = jtj.try_inverse()?;
+    Some((inv + inv.transpose()) * (0.5 * sigma_px * sigma_px))
+}
+
 /// The inliers' pixels and landmarks (ECEF).
 fn inliers_of(sol: &Solution) -> (Vec<Pixel>, Vec<Vector3<f64>>) {
     sol.records
@@ -3580,6 +3620,77 @@ mod tests {
             .map(|&(e, n)| frame.to_ecef(Enu::new(e, n, 0.0)).0)
             .collect();
         (camera, InsFilter::new(state, &init, errors), frame, truth, points)
+    }
+
+    /// What independent errors of a landmark's pixel give the pose solved
+    /// from a view's landmarks, against a Monte Carlo of the least-squares
+    /// solve itself (`refine_pose` on noisy pixels): the same covariance,
+    /// and a narrow view's far larger along the tilt-for-shift trade.
+    #[test]
+    fn landmark_errors_give_the_pose_the_covariance_a_monte_carlo_of_the_solve_gives() {
+        let camera = CameraModel::from_fov(1024, 768, 32.0);
+        let frame = LocalFrame::at(Geodetic::new(37.4, -118.5, 2000.0));
+        let truth = CameraPose::look_at(
+            frame.to_ecef(Enu::new(0.0, 0.0, 30e3)),
+            frame.to_ecef(Enu::new(0.0, 0.0, 0.0)),
+            frame.r_ecef_enu().column(1).into_owned(),
+        );
+        // An 8 x 8 grid over `share` of the image's sides, with relief.
+        let half_width_m = 30e3 * 16f64.to_radians().tan();
+        let landmarks = |share: f64| -> Vec<Vector3<f64>> {
+            (0..64)
+                .map(|k| {
+                    let (i, j) = ((k % 8) as f64 / 7.0 - 0.5, (k / 8) as f64 / 7.0 - 0.5);
+                    let (e, n) = (i * share * 2.0 * half_width_m, j * share * 1.5 * half_width_m);
+                    let h = 300.0 * (e / 2100.0).sin() * (n / 1700.0).cos();
+                    frame.to_ecef(Enu::new(e, n, h)).0
+                })
+                .collect()
+        };
+        // xorshift64* and Box-Muller: the test's own normal numbers.
+        let mut seed = 0x9e37_79b9_7f4a_7c15u64;
+        let mut normal = move || {
+            let mut uniform = || {
+                seed ^= seed >> 12;
+                seed ^= seed << 25;
+                seed ^= seed >> 27;
+                ((seed.wrapping_mul(0x2545_f491_4f6c_dd1d) >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+            };
+            let (a, b) = (uniform(), uniform());
+            (-2.0 * a.ln()).sqrt() * (std::f64::consts::TAU * b).cos()
+        };
+        let sigma = 0.5;
+        let mut largest = Vec::new();
+        for share in [0.35, 1.0] {
+            let pts = landmarks(share);
+            let c = landmark_error_pose_covariance(&camera, &truth, &pts, sigma).expect("fixed");
+            let pixels: Vec<Pixel> =
+                pts.iter().map(|p| truth.project(&camera, &Ecef(*p)).expect("in view")).collect();
+            let trials = 400;
+            let mut sample = Matrix6::zeros();
+            for _ in 0..trials {
+                let noisy: Vec<Pixel> = pixels
+                    .iter()
+                    .map(|p| Pixel::new(p.u + sigma * normal(), p.v + sigma * normal()))
+                    .collect();
+                let opts = RefineOptions { pixel_sigma: sigma, ..RefineOptions::default() };
+                let r = refine_pose(&camera, &noisy, &pts, &truth, &opts).expect("solved");
+                let d = ins::pose_difference(&r.pose, &truth);
+                sample += d * d.transpose() / trials as f64;
+            }
+            // In the analytic covariance's own sigmas, the sample's is the
+            // identity within the sampling error (400 draws: ~7% per
+            // variance; the extreme eigenvalues of six spread further).
+            let e = c.symmetric_eigen();
+            let w = e.eigenvectors.transpose() * sample * e.eigenvectors;
+            let w = Matrix6::from_fn(|i, j| w[(i, j)] / (e.eigenvalues[i] * e.eigenvalues[j]).sqrt());
+            let ev = w.symmetric_eigenvalues();
+            assert!(ev.min() > 0.75 && ev.max() < 1.3, "share {share}: {ev}");
+            largest.push(e.eigenvalues.max().sqrt());
+        }
+        // The narrow view (0.35 of the sides): the largest direction, a
+        // tilt for a shift, 6 times the wide view's (200 against 33 m).
+        assert!(largest[0] > 4.0 * largest[1], "{largest:?}");
     }
 
     fn seen(camera: &CameraModel, truth: &CameraPose, points: &[Vector3<f64>]) -> Vec<Match> {

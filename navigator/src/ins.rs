@@ -1190,14 +1190,14 @@ impl InsFilter {
                 self.state.map_offset_ecef_m.y,
                 self.state.map_offset_ecef_m.z,
             );
-            // Parts not modelled (a zero sigma and no view term) count nothing.
-            let keep: Vec<usize> = (0..6).filter(|&i| prior[(i, i)] > 0.0).collect();
-            let sub = DMatrix::from_fn(keep.len(), keep.len(), |a, b| prior[(keep[a], keep[b])]);
-            let xs = DVector::from_fn(keep.len(), |a, _| x[keep[a]]);
-            return match sub.cholesky() {
-                Some(c) => xs.dot(&c.solve(&xs)),
-                None => f64::INFINITY,
-            };
+            // A part not modelled (a zero sigma and no view term) has no
+            // variance and stays at zero: a unit variance counts it nothing.
+            for i in 0..6 {
+                if prior[(i, i)] <= 0.0 {
+                    prior[(i, i)] = 1.0;
+                }
+            }
+            return prior.cholesky().map_or(f64::INFINITY, |c| x.dot(&c.solve(&x)));
         }
         let part =
             |v: &Vector3<f64>, sigma: f64| if sigma > 0.0 { v.norm_squared() / (sigma * sigma) } else { 0.0 };
@@ -1211,8 +1211,8 @@ impl InsFilter {
     /// view's own errors lie within it and add nothing), at most
     /// [`MAP_VIEW_CAP_SIGMAS`] of that prior's sigmas along any direction (a
     /// view of a handful of landmarks would otherwise make the offset, and
-    /// with it the search and the gate, kilometres wide). Without the
-    /// prior (both sigmas 0): nothing.
+    /// with it the search and the gate, kilometres wide). Without either
+    /// part of the prior (a sigma of 0: not modelled): nothing.
     pub fn map_view_excess(&self, pose_cov: &Matrix6<f64>) -> Matrix6<f64> {
         let (sm, sa) = self.map_sigmas();
         if !(sm > 0.0 && sa > 0.0) {
@@ -1221,13 +1221,8 @@ impl InsFilter {
         // In the prior's sigmas, the prior is the identity.
         let d = Vector6::new(sa, sa, sa, sm, sm, sm);
         let w = Matrix6::from_fn(|i, j| pose_cov[(i, j)] / (d[i] * d[j]));
-        let e = ((w + w.transpose()) * 0.5).symmetric_eigen();
         let cap2 = MAP_VIEW_CAP_SIGMAS * MAP_VIEW_CAP_SIGMAS;
-        let mut c = Matrix6::zeros();
-        for (k, &l) in e.eigenvalues.iter().enumerate() {
-            let u = e.eigenvectors.column(k);
-            c += u * u.transpose() * (l - 1.0).clamp(0.0, cap2);
-        }
+        let c = map_eigenvalues(&w, |l| (l - 1.0).clamp(0.0, cap2));
         Matrix6::from_fn(|i, j| c[(i, j)] * d[i] * d[j])
     }
 
@@ -1268,7 +1263,8 @@ impl InsFilter {
         uncorrelate(&mut self.covariance, MAP_ATT..MAP_ATT + 3);
         block(&mut self.covariance, MAP, sm);
         block(&mut self.covariance, MAP_ATT, sa);
-        add_map_block(&mut self.covariance, &self.map_view_prior.clone());
+        let view = self.map_view_prior;
+        add_map_block(&mut self.covariance, &view);
         self.inflate(factor);
         let worst = (VEL..VEL + 3).map(|i| self.covariance[(i, i)]).fold(0.0, f64::max).sqrt();
         if worst < velocity_sigma_m_s && worst > 0.0 {
@@ -1424,18 +1420,22 @@ fn add_map_block(p: &mut Covariance, c: &Matrix6<f64>) {
     }
 }
 
-/// The part of a symmetric `d` that adds variance: its eigen-decomposition
-/// with the negative eigenvalues dropped.
-fn positive_part(d: &Matrix6<f64>) -> Matrix6<f64> {
+/// A symmetric `d` (its symmetric part) with `g` applied to its
+/// eigenvalues: `U g(L) U^T`.
+fn map_eigenvalues(d: &Matrix6<f64>, g: impl Fn(f64) -> f64) -> Matrix6<f64> {
     let e = ((d + d.transpose()) * 0.5).symmetric_eigen();
     let mut out = Matrix6::zeros();
     for (k, &l) in e.eigenvalues.iter().enumerate() {
-        if l > 0.0 {
-            let u = e.eigenvectors.column(k);
-            out += u * u.transpose() * l;
-        }
+        let u = e.eigenvectors.column(k);
+        out += u * u.transpose() * g(l);
     }
     out
+}
+
+/// The part of a symmetric `d` that adds variance: its negative
+/// eigenvalues dropped.
+fn positive_part(d: &Matrix6<f64>) -> Matrix6<f64> {
+    map_eigenvalues(d, |l| l.max(0.0))
 }
 
 /// Zeroes the rows and columns of `range` in `p` (their variances too).

@@ -3565,16 +3565,22 @@ mod tests {
     use crate::ins;
     use trn_geodesy::{Ecef, Enu, Geodetic, LocalFrame};
 
+    /// A camera `height_m` above `frame`'s origin looking straight down,
+    /// its image's up to the north.
+    fn nadir_pose(frame: &LocalFrame, height_m: f64) -> CameraPose {
+        CameraPose::look_at(
+            frame.to_ecef(Enu::new(0.0, 0.0, height_m)),
+            frame.to_ecef(Enu::new(0.0, 0.0, 0.0)),
+            frame.r_ecef_enu().column(1).into_owned(),
+        )
+    }
+
     /// A nadir camera 5 km above the ground, the inertial filter's estimate
     /// 30 m east of it, and ground landmarks seen in a small central box.
     fn gated_scene() -> (CameraModel, InsFilter, LocalFrame, CameraPose, Vec<Vector3<f64>>) {
         let camera = CameraModel::from_fov(640, 480, 40.0);
         let frame = LocalFrame::at(Geodetic::new(37.0, -118.0, 0.0));
-        let truth = CameraPose::look_at(
-            frame.to_ecef(Enu::new(0.0, 0.0, 5000.0)),
-            frame.to_ecef(Enu::new(0.0, 0.0, 0.0)),
-            frame.r_ecef_enu().column(1).into_owned(),
-        );
+        let truth = nadir_pose(&frame, 5000.0);
         let state = InsState {
             t: 0.0,
             position: frame.to_ecef(Enu::new(30.0, 0.0, 5000.0)),
@@ -3630,11 +3636,7 @@ mod tests {
     fn landmark_errors_give_the_pose_the_covariance_a_monte_carlo_of_the_solve_gives() {
         let camera = CameraModel::from_fov(1024, 768, 32.0);
         let frame = LocalFrame::at(Geodetic::new(37.4, -118.5, 2000.0));
-        let truth = CameraPose::look_at(
-            frame.to_ecef(Enu::new(0.0, 0.0, 30e3)),
-            frame.to_ecef(Enu::new(0.0, 0.0, 0.0)),
-            frame.r_ecef_enu().column(1).into_owned(),
-        );
+        let truth = nadir_pose(&frame, 30e3);
         // An 8 x 8 grid over `share` of the image's sides, with relief.
         let half_width_m = 30e3 * 16f64.to_radians().tan();
         let landmarks = |share: f64| -> Vec<Vector3<f64>> {
@@ -3995,11 +3997,7 @@ mod tests {
     fn the_search_sigma_is_the_pose_covariance_seen_in_the_image() {
         let camera = CameraModel::from_fov(640, 480, 40.0);
         let frame = LocalFrame::at(Geodetic::new(37.0, -118.0, 0.0));
-        let pose = CameraPose::look_at(
-            frame.to_ecef(Enu::new(0.0, 0.0, 5000.0)),
-            frame.to_ecef(Enu::new(0.0, 0.0, 0.0)),
-            frame.r_ecef_enu().column(1).into_owned(),
-        );
+        let pose = nadir_pose(&frame, 5000.0);
         let fp = footprint(&camera, &pose, &FootprintParams::default()).unwrap();
         let (east, north) =
             (frame.r_ecef_enu().column(0).into_owned(), frame.r_ecef_enu().column(1).into_owned());

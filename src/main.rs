@@ -417,6 +417,13 @@ struct NavigateArgs {
     /// the 200x150 rocket's first fixes, see the README)
     #[arg(long, default_value_t = 0.0)]
     map_view_sigma: f64,
+    /// A fix the inertial filter refuses as inconsistent doubts the filter
+    /// (its pose and velocity sigmas doubled, the search widened) at once
+    /// when its inliers cover at least this many cells of the 8x6 image
+    /// grid; a narrower view's (a hole in the cloud) only when a second
+    /// one follows before the next accepted fix (0: every one at once)
+    #[arg(long, default_value_t = 24)]
+    doubt_min_cells: usize,
     /// Camera-IMU time offset the inertial filter estimates: its prior
     /// (ms, 1 sigma; 0: the stamps are trusted).
     #[arg(long, default_value_t = 10.0)]
@@ -782,6 +789,7 @@ fn nav_params(a: &NavigateArgs) -> trn_navigator::NavParams {
     params.map_tau_s = a.map_tau;
     params.map_att_sigma_deg = a.map_att_sigma;
     params.map_view_sigma_px = a.map_view_sigma;
+    params.doubt_min_cells = a.doubt_min_cells;
     params.time_offset_sigma_s = a.time_offset_sigma / 1e3;
     params.prior_gated_update = !a.no_prior_gated_update;
     params.track_update = !a.no_track_update;
@@ -858,7 +866,7 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
     }
     let report = run.report;
     tracing::info!(
-        "{} of {} frames processed, {} fixes ({} rejected for too few inliers, {} for too small a share of inliers, {} acquisitions for too few of the templates searched for, {} for inliers on a line or in a cluster, {} for their height, {} as inconsistent with the inertial filter, {} acquisitions held for the next frame to confirm; {} frames without a fix updated the filter with their matches; {} frames updated it with the landmarks tracked from the image before; {} frames without a fix, in a run of them, doubted its pose), median {:.1} ms per frame; wrote {}, {} and {}",
+        "{} of {} frames processed, {} fixes ({} rejected for too few inliers, {} for too small a share of inliers, {} acquisitions for too few of the templates searched for, {} for inliers on a line or in a cluster, {} for their height, {} as inconsistent with the inertial filter ({} of a narrow view, not doubting it), {} acquisitions held for the next frame to confirm; {} frames without a fix updated the filter with their matches; {} frames updated it with the landmarks tracked from the image before; {} frames without a fix, in a run of them, doubted its pose), median {:.1} ms per frame; wrote {}, {} and {}",
         report.processed,
         report.frames,
         report.fixes,
@@ -868,6 +876,7 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
         report.rejected.spread,
         report.rejected.height,
         report.rejected.inconsistent,
+        report.narrow_inconsistent,
         report.rejected.unconfirmed,
         report.prior_gated_updates,
         report.track_updates,

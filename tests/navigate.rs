@@ -704,6 +704,7 @@ fn rejected_solutions_are_counted_and_the_next_image_is_processed_at_once() {
     assert!(r[..2].iter().all(|(_, _, n)| *n > 0), "{r:?}");
     assert_eq!(report["rejected"]["few_inliers"].as_u64().unwrap() as usize, with_solution);
     assert_eq!(report["rejected"]["inconsistent"].as_u64().unwrap(), 0);
+    assert_eq!(report["narrow_inconsistent"].as_u64().unwrap(), 0);
     assert_eq!(report["rejected"]["height"].as_u64().unwrap(), 0);
     assert_eq!(report["fixes"].as_u64().unwrap(), 0);
 }

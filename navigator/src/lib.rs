@@ -199,6 +199,10 @@ pub struct RunReport {
     /// four misses since it (frames whose matches did not agree): its
     /// uncertainty grown, the next fix a restart.
     pub doubted_frames: usize,
+    /// Of the fixes rejected as inconsistent, those of a narrow view (inliers
+    /// over fewer than `NavParams::doubt_min_cells` cells), the first since
+    /// the last accepted fix, that did not doubt the filter.
+    pub narrow_inconsistent: usize,
     /// Frames whose image could not be used (their pose carried, status
     /// `propagated`), in time order.
     pub skipped_images: Vec<SkippedImage>,
@@ -568,6 +572,7 @@ pub fn run_flight(
         prior_gated_updates: gated,
         track_updates: tracked,
         doubted_frames: nav.doubted_frames(),
+        narrow_inconsistent: nav.narrow_inconsistent(),
         skipped_images: skipped,
         imu_gaps,
         imu_uncovered,

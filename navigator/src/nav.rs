@@ -221,8 +221,24 @@ pub struct NavParams {
     pub track: TrackParams,
     /// A frame whose image-only pose is farther than this from the inertial
     /// filter's prediction (chi-square, 6 degrees of freedom) is rejected as
-    /// inconsistent, and the filter's pose and velocity uncertainty doubled.
+    /// inconsistent, and the filter's pose and velocity uncertainty doubled
+    /// (but see `doubt_min_cells`).
     pub innovation_gate_chi2: f64,
+    /// An inconsistent fix doubts the filter (doubles its pose and velocity
+    /// sigmas) at once when its inliers cover at least this many cells of
+    /// `grid`, or before the first fix, or while the guess is doubted; one
+    /// of a narrower view (a hole in the cloud, a patch of texture) only
+    /// when it is the second inconsistent fix since the last accepted one
+    /// ([`doubts_filter`]). A narrow view's few landmarks trade a tilt for
+    /// a shift, and their errors, the same in every image, bias its fixes
+    /// along that trade: doubling the filter for the first such fix let
+    /// the next biased fix through the gate, the pose dragged hundreds of
+    /// metres (measured, `scripts/bench_narrow.sh`: 9 of 35 runs accepted a
+    /// fix beyond 250 m with every inconsistent fix doubting, 1 of 35 with
+    /// this; the holes' inconsistent fixes cover 5-13 cells, those of the
+    /// shipped realistic flights 32 and 36, but the 640x480 rocket's in
+    /// its first second, 14). 0: every inconsistent fix doubts.
+    pub doubt_min_cells: usize,
     /// The sun during the flight: picks the database's lighting (its baked
     /// sun nearest to it) when it has several.
     pub sun: Option<SunLight>,
@@ -296,6 +312,8 @@ impl Default for NavParams {
             track: TrackParams::default(),
             // 99.9% of chi-square with 6 degrees of freedom.
             innovation_gate_chi2: 22.46,
+            // Half of the 8 x 6 grid.
+            doubt_min_cells: 24,
             sun: None,
             shading_weight: 0.5,
             calibration: Some(CalibrationParams::default()),
@@ -498,6 +516,10 @@ pub struct Navigator<'a> {
     /// Frames whose miss, after a fix, grew the doubt
     /// ([`Self::doubt_prediction`]).
     doubted_frames: usize,
+    /// Inconsistent fixes since the last accepted one ([`doubts_filter`]).
+    inconsistent_since_fix: usize,
+    /// Inconsistent fixes of a narrow view that did not doubt the filter.
+    narrow_inconsistent: usize,
     /// The threads of [`NavParams::threads`] (`None`: one, the caller's).
     pool: Option<rayon::ThreadPool>,
     /// A fix has sized the map offset's prior ([`map_sigmas_for_gsd`]).
@@ -991,6 +1013,8 @@ impl<'a> Navigator<'a> {
             fix_rate: None,
             misses: 0,
             doubted_frames: 0,
+            inconsistent_since_fix: 0,
+            narrow_inconsistent: 0,
             pool,
             map_sized: false,
             last_sensitivity: IntrinsicsSensitivity::NONE,
@@ -1523,6 +1547,13 @@ impl<'a> Navigator<'a> {
         self.doubted_frames
     }
 
+    /// Inconsistent fixes of a narrow view, the first since the last
+    /// accepted fix, that did not doubt the filter
+    /// ([`NavParams::doubt_min_cells`]).
+    pub fn narrow_inconsistent(&self) -> usize {
+        self.narrow_inconsistent
+    }
+
     /// [`FilterMode::Fixes`]: the pose's doubt after misses
     /// ([`Self::doubt_prediction`]): the attitude sigmas (`cov`, the
     /// attitude filter's carried covariance) and the position's
@@ -1863,6 +1894,7 @@ impl<'a> Navigator<'a> {
                     let since_fix_s = self.last_fix.map(|(t0, _)| t - t0);
                     self.last_fix = Some((t, sol.pose));
                     self.misses = 0;
+                    self.inconsistent_since_fix = 0;
                     // A later acquisition in tiles starts from the nearest
                     // (one that failed its confirmation goes on from there).
                     self.acquisition_cursor = 0;
@@ -1908,8 +1940,24 @@ impl<'a> Navigator<'a> {
                     {
                         // The image says the filter may be wrong: doubt it,
                         // so the next frames search wider and a run of such
-                        // frames gets through the gate.
-                        f.inflate(2.0);
+                        // frames gets through the gate; a narrow view's
+                        // first says less ([`doubts_filter`]).
+                        self.inconsistent_since_fix += 1;
+                        let (cells, _) = self.inlier_cells(&sol);
+                        let confirmed = self.last_fix.is_some() && !self.guess_doubted;
+                        if doubts_filter(
+                            cells,
+                            self.params.doubt_min_cells,
+                            self.inconsistent_since_fix,
+                            confirmed,
+                        ) {
+                            f.inflate(2.0);
+                        } else {
+                            debug!(
+                                "t {t:.3}: an inconsistent fix of a narrow view ({cells} cells): the filter is not doubted for it alone"
+                            );
+                            self.narrow_inconsistent += 1;
+                        }
                         self.guess_doubted |= self.last_fix.is_none();
                     } else {
                         if !sol.acquisition && !matches!(rejection, Some(Rejection::Height { .. })) {
@@ -2061,11 +2109,17 @@ impl<'a> Navigator<'a> {
         footprint(&self.camera, pose, &params)
     }
 
-    /// `Some` when the solution's inliers lie on a line or in a cluster.
-    fn spread_check(&self, sol: &Solution) -> Option<Rejection> {
+    /// [`inlier_spread`] of the solution's inliers over the image.
+    fn inlier_cells(&self, sol: &Solution) -> (usize, f64) {
         let px: Vec<Pixel> = sol.records.iter().filter(|r| r.inlier).map(|r| Pixel::new(r.u, r.v)).collect();
         let (w, h) = (self.camera.width as f64, self.camera.height as f64);
-        let (cells, spread_px) = inlier_spread(&px, w, h, self.params.grid);
+        inlier_spread(&px, w, h, self.params.grid)
+    }
+
+    /// `Some` when the solution's inliers lie on a line or in a cluster.
+    fn spread_check(&self, sol: &Solution) -> Option<Rejection> {
+        let (w, h) = (self.camera.width as f64, self.camera.height as f64);
+        let (cells, spread_px) = self.inlier_cells(sol);
         (cells < self.params.min_inlier_cells || spread_px < self.params.min_inlier_spread * w.min(h))
             .then_some(Rejection::Spread { cells, spread_px })
     }
@@ -2999,6 +3053,16 @@ pub fn inlier_spread(px: &[Pixel], w: f64, h: f64, grid: (usize, usize)) -> (usi
         seen[cy.min(gy - 1) * gx + cx.min(gx - 1)] = true;
     }
     (seen.iter().filter(|&&s| s).count(), minor.max(0.0).sqrt())
+}
+
+/// Whether an inconsistent fix (refused by the innovation gate) doubts
+/// the inertial filter: always before the filter's pose is `confirmed` by
+/// a fix (an initial or doubted guess), and when its inliers cover at
+/// least `min_cells` cells (a view that pins the pose whole); a narrower
+/// view's only as the `nth` (1: the first) inconsistent fix since the last
+/// accepted one. See [`NavParams::doubt_min_cells`].
+pub fn doubts_filter(cells: usize, min_cells: usize, nth: usize, confirmed: bool) -> bool {
+    !confirmed || cells >= min_cells || nth >= 2
 }
 
 /// The tight filter's update from a frame without a fix (too few
@@ -3969,6 +4033,41 @@ mod tests {
         assert!(cells >= p.min_inlier_cells && spread < p.min_inlier_spread * h, "{cells} {spread}");
         let (cells, spread) = inlier_spread(&hole(0.35), w, h, p.grid);
         assert!(cells >= p.min_inlier_cells && spread >= p.min_inlier_spread * h, "{cells} {spread}");
+    }
+
+    #[test]
+    fn a_narrow_views_first_inconsistent_fix_does_not_doubt_the_filter() {
+        let p = NavParams::default();
+        let (w, h) = (1024.0, 768.0);
+        let box_of = |share: f64| -> usize {
+            let (bw, bh) = (share * w, share * h);
+            let px: Vec<Pixel> = (0..400)
+                .map(|i| {
+                    Pixel::new(
+                        0.5 * (w - bw) + bw * (i % 20) as f64 / 19.0,
+                        0.5 * (h - bh) + bh * (i / 20) as f64 / 19.0,
+                    )
+                })
+                .collect();
+            inlier_spread(&px, w, h, p.grid).0
+        };
+        // The holes of scripts/bench_narrow.sh (0.3-0.5 of the sides) are
+        // narrow: their first inconsistent fix since the last accepted one
+        // leaves the filter as it is, the second doubts it.
+        for share in [0.3, 0.4, 0.5] {
+            let cells = box_of(share);
+            assert!(!doubts_filter(cells, p.doubt_min_cells, 1, true), "{share}: {cells} cells");
+            assert!(doubts_filter(cells, p.doubt_min_cells, 2, true), "{share}: {cells} cells");
+            // Before the pose is confirmed, the first doubts it.
+            assert!(doubts_filter(cells, p.doubt_min_cells, 1, false), "{share}: {cells} cells");
+        }
+        // Three quarters of the image, or all of it, pin the pose whole.
+        for share in [0.75, 1.0] {
+            let cells = box_of(share);
+            assert!(doubts_filter(cells, p.doubt_min_cells, 1, true), "{share}: {cells} cells");
+        }
+        // 0: every inconsistent fix doubts, as before the option.
+        assert!(doubts_filter(box_of(0.3), 0, 1, true));
     }
 
     #[test]

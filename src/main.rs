@@ -420,8 +420,9 @@ struct NavigateArgs {
     /// A fix the inertial filter refuses as inconsistent doubts the filter
     /// (its pose and velocity sigmas doubled, the search widened) at once
     /// when its inliers cover at least this many cells of the 8x6 image
-    /// grid; a narrower view's (a hole in the cloud) only when a second
-    /// one follows before the next accepted fix (0: every one at once)
+    /// grid; a narrower view's (a hole in the cloud) only when it agrees
+    /// with the refused fix before it since the last accepted one, both
+    /// saying the filter is off by the same (0: every one at once)
     #[arg(long, default_value_t = 24)]
     doubt_min_cells: usize,
     /// Camera-IMU time offset the inertial filter estimates: its prior

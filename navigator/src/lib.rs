@@ -200,8 +200,9 @@ pub struct RunReport {
     /// uncertainty grown, the next fix a restart.
     pub doubted_frames: usize,
     /// Of the fixes rejected as inconsistent, those of a narrow view (inliers
-    /// over fewer than `NavParams::doubt_min_cells` cells), the first since
-    /// the last accepted fix, that did not doubt the filter.
+    /// over fewer than `NavParams::doubt_min_cells` cells) that did not
+    /// doubt the filter: none before them since the last accepted fix, or
+    /// the one before said otherwise.
     pub narrow_inconsistent: usize,
     /// Frames whose image could not be used (their pose carried, status
     /// `propagated`), in time order.

@@ -4,7 +4,9 @@
 use std::collections::HashMap;
 use std::time::Instant;
 
-use nalgebra::{DMatrix, DVector, Matrix2, Matrix3, Matrix6, SMatrix, UnitQuaternion, Vector2, Vector3};
+use nalgebra::{
+    DMatrix, DVector, Matrix2, Matrix3, Matrix6, SMatrix, UnitQuaternion, Vector2, Vector3, Vector6,
+};
 use tracing::{debug, info};
 use trn_camera::{CameraConfig, CameraModel, CameraPose, Pixel};
 use trn_flight::{FixStatus, ImuSample, MatchRecord, NavRecord, PoseCovariance, TimedPose};
@@ -25,7 +27,7 @@ use crate::ins::{
     doubt_factor, JumpTurn, JumpWatch, GYRO_JUMP_MAX_ANGLE_DEG, GYRO_JUMP_MAX_S, HELD_RATE_MAX_DEG_S,
     IMU_GAP_MAX_ANGLE_DEG,
 };
-use crate::ins::{InsErrors, InsFilter, InsInit, InsState, IntrinsicsSensitivity, FOCAL};
+use crate::ins::{pose_difference, InsErrors, InsFilter, InsInit, InsState, IntrinsicsSensitivity, FOCAL};
 use crate::predict::{predict, Predicted};
 use crate::propagate::{
     ends_gap, for_each_segment, propagate_with_bias, turn_over, unmeasured_attitude_variance, WalkStarts,
@@ -228,16 +230,19 @@ pub struct NavParams {
     /// sigmas) at once when its inliers cover at least this many cells of
     /// `grid`, or before the first fix, or while the guess is doubted; one
     /// of a narrower view (a hole in the cloud, a patch of texture) only
-    /// when it is the second inconsistent fix since the last accepted one
-    /// ([`doubts_filter`]). A narrow view's few landmarks trade a tilt for
-    /// a shift, and their errors, the same in every image, bias its fixes
-    /// along that trade: doubling the filter for the first such fix let
-    /// the next biased fix through the gate, the pose dragged hundreds of
-    /// metres (measured, `scripts/bench_narrow.sh`: 9 of 35 runs accepted a
-    /// fix beyond 250 m with every inconsistent fix doubting, 1 of 35 with
-    /// this; the holes' inconsistent fixes cover 5-13 cells, those of the
-    /// shipped realistic flights 32 and 36, but the 640x480 rocket's in
-    /// its first second, 14). 0: every inconsistent fix doubts.
+    /// when it agrees with the inconsistent fix before it since the last
+    /// accepted one: both disagree with the filter alike, their
+    /// innovations within the gate of each other ([`doubts_filter`],
+    /// [`innovations_agree`]). A narrow view's few landmarks trade a tilt
+    /// for a shift, its fixes are biased along that trade, and its wrong
+    /// solutions scatter: doubling the filter for them let the next biased
+    /// fix through the gate, the pose dragged hundreds of metres (measured,
+    /// `scripts/bench_narrow.sh`: 9 of 35 runs accepted a fix beyond 250 m
+    /// with every inconsistent fix doubting; 1 of 35 with the second
+    /// doubting whatever it said, 0 with this; the holes' inconsistent
+    /// fixes cover 5-13 cells, those of the shipped realistic flights 32
+    /// and 36, but the 640x480 rocket's in its first second, 14). 0: every
+    /// inconsistent fix doubts.
     pub doubt_min_cells: usize,
     /// The sun during the flight: picks the database's lighting (its baked
     /// sun nearest to it) when it has several.
@@ -516,8 +521,10 @@ pub struct Navigator<'a> {
     /// Frames whose miss, after a fix, grew the doubt
     /// ([`Self::doubt_prediction`]).
     doubted_frames: usize,
-    /// Inconsistent fixes since the last accepted one ([`doubts_filter`]).
-    inconsistent_since_fix: usize,
+    /// The last inconsistent fix since the last accepted one: its
+    /// innovation against the filter's prediction and its covariance
+    /// ([`innovations_agree`]).
+    last_refused: Option<(Vector6<f64>, Matrix6<f64>)>,
     /// Inconsistent fixes of a narrow view that did not doubt the filter.
     narrow_inconsistent: usize,
     /// The threads of [`NavParams::threads`] (`None`: one, the caller's).
@@ -1013,7 +1020,7 @@ impl<'a> Navigator<'a> {
             fix_rate: None,
             misses: 0,
             doubted_frames: 0,
-            inconsistent_since_fix: 0,
+            last_refused: None,
             narrow_inconsistent: 0,
             pool,
             map_sized: false,
@@ -1547,9 +1554,9 @@ impl<'a> Navigator<'a> {
         self.doubted_frames
     }
 
-    /// Inconsistent fixes of a narrow view, the first since the last
-    /// accepted fix, that did not doubt the filter
-    /// ([`NavParams::doubt_min_cells`]).
+    /// Inconsistent fixes of a narrow view that did not doubt the filter
+    /// ([`NavParams::doubt_min_cells`]: none before them since the last
+    /// accepted fix, or the one before said otherwise).
     pub fn narrow_inconsistent(&self) -> usize {
         self.narrow_inconsistent
     }
@@ -1894,7 +1901,7 @@ impl<'a> Navigator<'a> {
                     let since_fix_s = self.last_fix.map(|(t0, _)| t - t0);
                     self.last_fix = Some((t, sol.pose));
                     self.misses = 0;
-                    self.inconsistent_since_fix = 0;
+                    self.last_refused = None;
                     // A later acquisition in tiles starts from the nearest
                     // (one that failed its confirmation goes on from there).
                     self.acquisition_cursor = 0;
@@ -1941,20 +1948,25 @@ impl<'a> Navigator<'a> {
                         // The image says the filter may be wrong: doubt it,
                         // so the next frames search wider and a run of such
                         // frames gets through the gate; a narrow view's
-                        // first says less ([`doubts_filter`]).
-                        self.inconsistent_since_fix += 1;
+                        // says less, unless the one before said the same
+                        // ([`doubts_filter`]).
+                        let innovation = self.refine_inliers(&sol, None).map(|r| {
+                            (pose_difference(&r.pose, &f.apparent_pose(&self.q_imu_cam).0), r.covariance)
+                        });
+                        let agrees = match (&self.last_refused, &innovation) {
+                            (Some((y0, r0)), Some((y, r))) => {
+                                innovations_agree(y0, r0, y, r, self.params.innovation_gate_chi2)
+                            }
+                            _ => false,
+                        };
+                        self.last_refused = innovation;
                         let (cells, _) = self.inlier_cells(&sol);
                         let confirmed = self.last_fix.is_some() && !self.guess_doubted;
-                        if doubts_filter(
-                            cells,
-                            self.params.doubt_min_cells,
-                            self.inconsistent_since_fix,
-                            confirmed,
-                        ) {
+                        if doubts_filter(cells, self.params.doubt_min_cells, agrees, confirmed) {
                             f.inflate(2.0);
                         } else {
                             debug!(
-                                "t {t:.3}: an inconsistent fix of a narrow view ({cells} cells): the filter is not doubted for it alone"
+                                "t {t:.3}: an inconsistent fix of a narrow view ({cells} cells), not as the one before: the filter is not doubted for it"
                             );
                             self.narrow_inconsistent += 1;
                         }
@@ -3059,10 +3071,30 @@ pub fn inlier_spread(px: &[Pixel], w: f64, h: f64, grid: (usize, usize)) -> (usi
 /// the inertial filter: always before the filter's pose is `confirmed` by
 /// a fix (an initial or doubted guess), and when its inliers cover at
 /// least `min_cells` cells (a view that pins the pose whole); a narrower
-/// view's only as the `nth` (1: the first) inconsistent fix since the last
-/// accepted one. See [`NavParams::doubt_min_cells`].
-pub fn doubts_filter(cells: usize, min_cells: usize, nth: usize, confirmed: bool) -> bool {
-    !confirmed || cells >= min_cells || nth >= 2
+/// view's only when it `agrees_with_last` inconsistent fix since the last
+/// accepted one ([`innovations_agree`]): two images that say the filter is
+/// off by the same are evidence, a narrow view's scattered solutions are
+/// not. See [`NavParams::doubt_min_cells`].
+pub fn doubts_filter(cells: usize, min_cells: usize, agrees_with_last: bool, confirmed: bool) -> bool {
+    !confirmed || cells >= min_cells || agrees_with_last
+}
+
+/// Whether two fixes' innovations against the filter's predictions
+/// (`[dtheta; dp]`, [`pose_difference`] of the fix's pose and the
+/// predicted one; `y0` with covariance `r0`, `y1` with `r1`, each the
+/// fix's own) say the same: their difference within `chi2_limit`
+/// (chi-square, 6 degrees of freedom) of the sum of their covariances. A
+/// filter gone wrong is off by nearly the same at two frames half a second
+/// apart; a narrow view's wrong solutions are not.
+pub fn innovations_agree(
+    y0: &Vector6<f64>,
+    r0: &Matrix6<f64>,
+    y1: &Vector6<f64>,
+    r1: &Matrix6<f64>,
+    chi2_limit: f64,
+) -> bool {
+    let d = y1 - y0;
+    (r0 + r1).cholesky().is_some_and(|c| d.dot(&c.solve(&d)) <= chi2_limit)
 }
 
 /// The tight filter's update from a frame without a fix (too few
@@ -4036,7 +4068,7 @@ mod tests {
     }
 
     #[test]
-    fn a_narrow_views_first_inconsistent_fix_does_not_doubt_the_filter() {
+    fn a_narrow_views_inconsistent_fix_doubts_the_filter_only_when_another_agrees() {
         let p = NavParams::default();
         let (w, h) = (1024.0, 768.0);
         let box_of = |share: f64| -> usize {
@@ -4052,22 +4084,53 @@ mod tests {
             inlier_spread(&px, w, h, p.grid).0
         };
         // The holes of scripts/bench_narrow.sh (0.3-0.5 of the sides) are
-        // narrow: their first inconsistent fix since the last accepted one
-        // leaves the filter as it is, the second doubts it.
+        // narrow: an inconsistent fix of one leaves the filter as it is
+        // unless it agrees with the one before.
         for share in [0.3, 0.4, 0.5] {
             let cells = box_of(share);
-            assert!(!doubts_filter(cells, p.doubt_min_cells, 1, true), "{share}: {cells} cells");
-            assert!(doubts_filter(cells, p.doubt_min_cells, 2, true), "{share}: {cells} cells");
-            // Before the pose is confirmed, the first doubts it.
-            assert!(doubts_filter(cells, p.doubt_min_cells, 1, false), "{share}: {cells} cells");
+            assert!(!doubts_filter(cells, p.doubt_min_cells, false, true), "{share}: {cells} cells");
+            assert!(doubts_filter(cells, p.doubt_min_cells, true, true), "{share}: {cells} cells");
+            // Before the pose is confirmed, every one doubts it.
+            assert!(doubts_filter(cells, p.doubt_min_cells, false, false), "{share}: {cells} cells");
         }
         // Three quarters of the image, or all of it, pin the pose whole.
         for share in [0.75, 1.0] {
             let cells = box_of(share);
-            assert!(doubts_filter(cells, p.doubt_min_cells, 1, true), "{share}: {cells} cells");
+            assert!(doubts_filter(cells, p.doubt_min_cells, false, true), "{share}: {cells} cells");
         }
         // 0: every inconsistent fix doubts, as before the option.
-        assert!(doubts_filter(box_of(0.3), 0, 1, true));
+        assert!(doubts_filter(box_of(0.3), 0, false, true));
+    }
+
+    /// A `[dtheta; dp]` covariance of `att_deg` about and `pos_m` along
+    /// each axis (1 sigma), uncorrelated.
+    fn pose_variances(att_deg: f64, pos_m: f64) -> Matrix6<f64> {
+        let a = att_deg.to_radians().powi(2);
+        let p = pos_m * pos_m;
+        Matrix6::from_diagonal(&Vector6::new(a, a, a, p, p, p))
+    }
+
+    #[test]
+    fn two_refused_fixes_agree_when_the_filter_is_off_by_the_same() {
+        // A fix's covariance: 0.05 deg and 20 m (1 sigma per axis).
+        let r = pose_variances(0.05, 20.0);
+        let gate = NavParams::default().innovation_gate_chi2;
+        // The filter 150 m east and 0.3 deg off: two fixes see it alike,
+        // within their own noise (1 sigma apart on two axes).
+        let off = Vector6::new(0.3f64.to_radians(), 0.0, 0.0, 150.0, 0.0, 0.0);
+        let noise = Vector6::new(0.0, 0.05f64.to_radians(), 0.0, 0.0, 20.0, 0.0);
+        assert!(innovations_agree(&off, &r, &(off + noise), &r, gate));
+        // A narrow view's two wrong solutions, each as far from the filter:
+        // one 150 m east, the other 150 m north.
+        let north = Vector6::new(0.0, 0.3f64.to_radians(), 0.0, 0.0, 150.0, 0.0);
+        assert!(!innovations_agree(&off, &r, &north, &r, gate));
+        // The test is the gate's: at its edge along one axis, and past it.
+        let edge = (gate * 2.0 * 400.0).sqrt();
+        let along = |m: f64| Vector6::new(0.0, 0.0, 0.0, 0.0, 0.0, m);
+        assert!(innovations_agree(&off, &r, &(off + along(0.99 * edge)), &r, gate));
+        assert!(!innovations_agree(&off, &r, &(off + along(1.01 * edge)), &r, gate));
+        // A covariance that cannot be inverted agrees with nothing.
+        assert!(!innovations_agree(&off, &Matrix6::zeros(), &off, &Matrix6::zeros(), gate));
     }
 
     #[test]
@@ -4453,14 +4516,7 @@ mod tests {
         // 0.1 deg about each axis, 40 m along each, for 30 m landmarks.
         let p = NavParams::default();
         let c = map_offset_covariance(&p, Some(30.0));
-        let want = Matrix6::from_diagonal(&nalgebra::Vector6::new(
-            0.1f64.to_radians().powi(2),
-            0.1f64.to_radians().powi(2),
-            0.1f64.to_radians().powi(2),
-            1600.0,
-            1600.0,
-            1600.0,
-        ));
+        let want = pose_variances(0.1, 40.0);
         assert!((c - want).abs().max() < 1e-9, "{c}");
         assert_eq!(map_offset_covariance(&p, None), Matrix6::zeros());
         let mut v = vec![32.0, 16.0, 16.0, 64.0];

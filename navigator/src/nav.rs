@@ -524,7 +524,7 @@ pub struct Navigator<'a> {
     /// The last inconsistent fix since the last accepted one: its
     /// innovation against the filter's prediction and its covariance
     /// ([`innovations_agree`]).
-    last_refused: Option<(Vector6<f64>, Matrix6<f64>)>,
+    last_refused: Option<Innovation>,
     /// Inconsistent fixes of a narrow view that did not doubt the filter.
     narrow_inconsistent: usize,
     /// The threads of [`NavParams::threads`] (`None`: one, the caller's).
@@ -1613,7 +1613,10 @@ impl<'a> Navigator<'a> {
     }
 
     /// Whether the frame's image-only pose agrees with the inertial filter's
-    /// prediction ([`NavParams::innovation_gate_chi2`]).
+    /// prediction ([`NavParams::innovation_gate_chi2`]): the rejection if
+    /// not, and the pose's innovation against the prediction (`[dtheta;
+    /// dp]`) with its own covariance, for [`innovations_agree`] (`None`
+    /// when its inliers give no pose).
     /// `consider`: the calibration's share of the pose's uncertainty.
     fn consistency(
         &self,
@@ -1621,12 +1624,16 @@ impl<'a> Navigator<'a> {
         f: &InsFilter,
         sol: &Solution,
         consider: &Matrix6<f64>,
-    ) -> Option<Rejection> {
-        let r = self.refine_inliers(sol, None)?;
+    ) -> (Option<Rejection>, Option<Innovation>) {
+        let Some(r) = self.refine_inliers(sol, None) else { return (None, None) };
         let chi2 =
             f.innovation(&self.q_imu_cam, &r.pose, &(r.covariance + consider)).unwrap_or(f64::INFINITY);
         debug!("t {t:.3}: innovation chi2 {chi2:.1}");
-        (chi2 > self.params.innovation_gate_chi2).then_some(Rejection::Inconsistent { chi2 })
+        let innovation = (pose_difference(&r.pose, &f.apparent_pose(&self.q_imu_cam).0), r.covariance);
+        (
+            (chi2 > self.params.innovation_gate_chi2).then_some(Rejection::Inconsistent { chi2 }),
+            Some(innovation),
+        )
     }
 
     /// Updates the inertial filter with an accepted frame; returns the
@@ -1884,9 +1891,10 @@ impl<'a> Navigator<'a> {
                 let frame = if rejection.is_none() { self.calibration_frame(&sol) } else { None };
                 // An acquisition searched the whole prior: nothing to test
                 // it against (its pose restarts the filter's, below).
+                let mut innovation = None;
                 if let (None, Carried::Ins(f), false) = (rejection, &pred.filter, sol.acquisition) {
                     let consider = self.calibration_consider(frame.as_ref());
-                    rejection = self.consistency(t, f, &sol, &consider);
+                    (rejection, innovation) = self.consistency(t, f, &sol, &consider);
                 }
                 rejected = rejection;
                 let accepted = rejection.is_none();
@@ -1950,9 +1958,6 @@ impl<'a> Navigator<'a> {
                         // frames gets through the gate; a narrow view's
                         // says less, unless the one before said the same
                         // ([`doubts_filter`]).
-                        let innovation = self.refine_inliers(&sol, None).map(|r| {
-                            (pose_difference(&r.pose, &f.apparent_pose(&self.q_imu_cam).0), r.covariance)
-                        });
                         let agrees = match (&self.last_refused, &innovation) {
                             (Some((y0, r0)), Some((y, r))) => {
                                 innovations_agree(y0, r0, y, r, self.params.innovation_gate_chi2)
@@ -3078,6 +3083,11 @@ pub fn inlier_spread(px: &[Pixel], w: f64, h: f64, grid: (usize, usize)) -> (usi
 pub fn doubts_filter(cells: usize, min_cells: usize, agrees_with_last: bool, confirmed: bool) -> bool {
     !confirmed || cells >= min_cells || agrees_with_last
 }
+
+/// A fix's innovation against the inertial filter's prediction (`[dtheta;
+/// dp]`, [`pose_difference`] of the fix's pose and the predicted one) and
+/// the fix's own covariance.
+type Innovation = (Vector6<f64>, Matrix6<f64>);
 
 /// Whether two fixes' innovations against the filter's predictions
 /// (`[dtheta; dp]`, [`pose_difference`] of the fix's pose and the

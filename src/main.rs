@@ -422,7 +422,8 @@ struct NavigateArgs {
     /// when its inliers cover at least this many cells of the 8x6 image
     /// grid; a narrower view's (a hole in the cloud) only when it agrees
     /// with the refused fix before it since the last accepted one, both
-    /// saying the filter is off by the same (0: every one at once)
+    /// saying the filter is off by the same (0: every one at once; 49 or
+    /// more: every one only so)
     #[arg(long, default_value_t = 24)]
     doubt_min_cells: usize,
     /// Camera-IMU time offset the inertial filter estimates: its prior

@@ -593,6 +593,8 @@ fn bad_inputs_are_named() {
         ("--map-tau", "0"),
         ("--map-view-sigma", "nan"),
         ("--map-view-sigma", "inf"),
+        ("--doubt-min-cells", "many"),
+        ("--doubt-min-cells", "2.5"),
         ("--time-offset-sigma", "nan"),
         ("--track-sigma", "0"),
         ("--track-sigma", "nan"),

@@ -942,19 +942,21 @@ impl InsFilter {
         (self.state.velocity_ecef_m_s, self.covariance.fixed_view::<3, 3>(VEL, VEL).into_owned())
     }
 
-    /// Normalized innovation squared (6 degrees of freedom) of an apparent
-    /// camera pose measured with covariance `r` independently of the
-    /// filter; `None` when the innovation covariance is singular.
+    /// The innovation of an apparent camera pose measured with covariance
+    /// `r` independently of the filter: the measured minus the predicted
+    /// pose (`[dtheta; dp]`, [`pose_difference`]) and its normalized square
+    /// (chi-square, 6 degrees of freedom; `None` when the innovation
+    /// covariance is singular).
     pub fn innovation(
         &self,
         q_imu_cam: &UnitQuaternion<f64>,
         measured: &CameraPose,
         r: &Matrix6<f64>,
-    ) -> Option<f64> {
+    ) -> (Vector6<f64>, Option<f64>) {
         let (pred, m) = self.apparent_pose(q_imu_cam);
         let y = pose_difference(measured, &pred);
-        let s = (m + r).cholesky()?;
-        Some(y.dot(&s.solve(&y)))
+        let nis = (m + r).cholesky().map(|s| y.dot(&s.solve(&y)));
+        (y, nis)
     }
 
     /// Conditions the filter on a posterior of the apparent camera pose

@@ -27,7 +27,7 @@ use crate::ins::{
     doubt_factor, JumpTurn, JumpWatch, GYRO_JUMP_MAX_ANGLE_DEG, GYRO_JUMP_MAX_S, HELD_RATE_MAX_DEG_S,
     IMU_GAP_MAX_ANGLE_DEG,
 };
-use crate::ins::{pose_difference, InsErrors, InsFilter, InsInit, InsState, IntrinsicsSensitivity, FOCAL};
+use crate::ins::{InsErrors, InsFilter, InsInit, InsState, IntrinsicsSensitivity, FOCAL};
 use crate::predict::{predict, Predicted};
 use crate::propagate::{
     ends_gap, for_each_segment, propagate_with_bias, turn_over, unmeasured_attitude_variance, WalkStarts,
@@ -1626,10 +1626,10 @@ impl<'a> Navigator<'a> {
         consider: &Matrix6<f64>,
     ) -> (Option<Rejection>, Option<Innovation>) {
         let Some(r) = self.refine_inliers(sol, None) else { return (None, None) };
-        let chi2 =
-            f.innovation(&self.q_imu_cam, &r.pose, &(r.covariance + consider)).unwrap_or(f64::INFINITY);
+        let (y, chi2) = f.innovation(&self.q_imu_cam, &r.pose, &(r.covariance + consider));
+        let chi2 = chi2.unwrap_or(f64::INFINITY);
         debug!("t {t:.3}: innovation chi2 {chi2:.1}");
-        let innovation = (pose_difference(&r.pose, &f.apparent_pose(&self.q_imu_cam).0), r.covariance);
+        let innovation = (y, r.covariance);
         (
             (chi2 > self.params.innovation_gate_chi2).then_some(Rejection::Inconsistent { chi2 }),
             Some(innovation),
@@ -3085,12 +3085,12 @@ pub fn doubts_filter(cells: usize, min_cells: usize, agrees_with_last: bool, con
 }
 
 /// A fix's innovation against the inertial filter's prediction (`[dtheta;
-/// dp]`, [`pose_difference`] of the fix's pose and the predicted one) and
+/// dp]`, [`pose_difference`](crate::ins::pose_difference) of the fix's pose and the predicted one) and
 /// the fix's own covariance.
 type Innovation = (Vector6<f64>, Matrix6<f64>);
 
 /// Whether two fixes' innovations against the filter's predictions
-/// (`[dtheta; dp]`, [`pose_difference`] of the fix's pose and the
+/// (`[dtheta; dp]`, [`pose_difference`](crate::ins::pose_difference) of the fix's pose and the
 /// predicted one; `y0` with covariance `r0`, `y1` with `r1`, each the
 /// fix's own) say the same: their difference within `chi2_limit`
 /// (chi-square, 6 degrees of freedom) of the sum of their covariances. A

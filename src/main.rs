@@ -897,7 +897,7 @@ fn run_navigate(a: NavigateArgs) -> anyhow::Result<()> {
     }
     if report.gyro_jumps_undone > 0 {
         tracing::warn!(
-            "{} fix(es) found with the gyro's jumps since the fix before undone: the image saw the camera where it was before them (a glitch, not a turn)",
+            "{} frame(s) found their landmarks with the gyro's jumps since the fix before undone: the image saw the camera where it was before them (a glitch, not a turn)",
             report.gyro_jumps_undone
         );
     }

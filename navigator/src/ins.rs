@@ -1246,6 +1246,25 @@ impl InsFilter {
         self.map_view = (view + view.transpose()) * 0.5;
     }
 
+    /// Takes the gyro's jumps since the last fix (`jump`) for a glitch, as
+    /// a frame that found its landmarks with them undone says: the attitude
+    /// is turned back by them (in ECEF, where a turn made at the jump stays
+    /// the same rotation as the body turns on), the jump record is cleared,
+    /// and the velocity is doubted by `velocity_sigma_m_s` per axis (what the
+    /// accelerometer's force, turned by them since the first, added; the
+    /// position by that over half the time since). The attitude keeps the
+    /// jump's own doubt: the next fixes narrow it.
+    pub fn undo_jumps(&mut self, jump: &JumpTurn, velocity_sigma_m_s: f64) {
+        let s = &mut self.state;
+        s.q_ecef_imu = UnitQuaternion::from_scaled_axis(-jump.turn_ecef_rad) * s.q_ecef_imu;
+        let position_sigma_m = velocity_sigma_m_s * (s.t - jump.since_t).max(0.0) * 0.5;
+        for i in 0..3 {
+            self.covariance[(VEL + i, VEL + i)] += velocity_sigma_m_s * velocity_sigma_m_s;
+            self.covariance[(POS + i, POS + i)] += position_sigma_m * position_sigma_m;
+        }
+        self.jump_turn = None;
+    }
+
     /// Restarts the map offset when its estimate is not to be believed
     /// ([`Self::map_offset_distance`]): the pose the images see is kept (the
     /// offset moved into the position and attitude), the offset starts
@@ -2765,6 +2784,37 @@ mod tests {
         assert_eq!(k.covariance[(MAP, MAP)], 400.0);
         assert_eq!(k.covariance[(POS, MAP)], 0.0);
         assert_eq!(k.covariance[(MAP_ATT, MAP_ATT)], 0.0);
+    }
+
+    #[test]
+    fn undoing_the_gyros_jumps_turns_the_attitude_back_and_doubts_the_velocity() {
+        let turn = Turn::new();
+        let mut f = InsFilter::new(turn.state(3.0), &init(), errors());
+        let before = f.clone();
+        // Turned 0.5 rad about an ECEF axis since 1 s.
+        let jump = JumpTurn { since_t: 1.0, turn_ecef_rad: Vector3::new(0.0, 0.3, 0.4) };
+        f.jump_turn = Some(jump);
+        f.undo_jumps(&jump, 2.0);
+        assert_eq!(f.jump_turn, None);
+        let turned = f.state.q_ecef_imu.angle_to(&before.state.q_ecef_imu);
+        assert!((turned - 0.5).abs() < 1e-12, "{turned}");
+        let again = UnitQuaternion::from_scaled_axis(jump.turn_ecef_rad) * f.state.q_ecef_imu;
+        assert!(again.angle_to(&before.state.q_ecef_imu) < 1e-12);
+        // 2 m/s more per velocity axis, and 2 m/s over half the 2 s since
+        // the jump per position axis; nothing else moves.
+        for i in 0..N {
+            for j in 0..N {
+                let added = f.covariance[(i, j)] - before.covariance[(i, j)];
+                let want = match (i == j, i) {
+                    (true, i) if (VEL..VEL + 3).contains(&i) => 4.0,
+                    (true, i) if (POS..POS + 3).contains(&i) => 4.0,
+                    _ => 0.0,
+                };
+                assert!((added - want).abs() < 1e-9, "({i}, {j}): {added}");
+            }
+        }
+        assert_eq!(f.state.position, before.state.position);
+        assert_eq!(f.state.velocity_ecef_m_s, before.state.velocity_ecef_m_s);
     }
 
     #[test]

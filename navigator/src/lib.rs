@@ -220,9 +220,11 @@ pub struct RunReport {
     /// Gyro rate jumps doubted (`--gyro-max-jump`): by the inertial filter,
     /// or without it (`--filter fixes`) in the attitude's prediction.
     pub gyro_jumps: usize,
-    /// Fixes found with the gyro's jumps since the fix before undone, as
-    /// glitches, after the frame's own search did not stand (see
-    /// `trn navigate`, When the sensors fail).
+    /// Frames that found their landmarks with the gyro's jumps since the
+    /// fix before undone, as glitches, after their own search did not
+    /// stand: the inertial filter then takes the undo; with `--filter
+    /// fixes`, the fix restarts the pose (see `trn navigate`, When the
+    /// sensors fail).
     pub gyro_jumps_undone: usize,
     /// Accelerometer jumps the inertial filter doubted (`--accel-max-jump`).
     pub accel_jumps: usize,

@@ -569,18 +569,6 @@ pub struct Navigator<'a> {
     tile_landmarks: std::cell::Cell<Option<usize>>,
 }
 
-/// What an accepted fix that restarts the inertial filter's pose knows of
-/// the time since the last one, for its velocity's doubt.
-#[derive(Clone, Copy, Debug)]
-struct SinceFix {
-    /// Seconds since the last accepted fix (`None`: none yet).
-    fix_s: Option<f64>,
-    /// The velocity (m/s) the gyro's jumps, undone for this fix, added to
-    /// the accelerometer's force since the first of them
-    /// ([`turned_force_velocity`]; 0 when none were undone).
-    turned_force_m_s: f64,
-}
-
 /// An acquisition found in a tile away from the guess, held for the next
 /// frame to confirm ([`Rejection::Unconfirmed`]).
 #[derive(Clone, Copy, Debug)]
@@ -1514,9 +1502,11 @@ impl<'a> Navigator<'a> {
         self.ins.as_ref().map_or(self.own_gyro_jumps, |f| f.gyro_jumps())
     }
 
-    /// Fixes found with the gyro's jumps since the fix before undone: a
-    /// frame whose own search did not stand after a jump beyond its doubt,
-    /// searched again as if the jump had been a glitch.
+    /// Frames that found their landmarks with the gyro's jumps since the
+    /// fix before undone: a frame whose own search did not stand after a
+    /// jump beyond its doubt, searched again as if the jump had been a
+    /// glitch ([`Self::take_jumps_undone`]; with [`FilterMode::Fixes`], an
+    /// accepted fix so found).
     pub fn gyro_jumps_undone(&self) -> usize {
         self.jumps_undone
     }
@@ -1646,7 +1636,7 @@ impl<'a> Navigator<'a> {
         sol: &Solution,
         calibration_cov: Matrix6<f64>,
         sensitivity: &IntrinsicsSensitivity,
-        since: SinceFix,
+        since_fix_s: Option<f64>,
     ) -> Matrix6<f64> {
         let q = self.q_imu_cam;
         // The next jumps are measured from this fix.
@@ -1689,14 +1679,10 @@ impl<'a> Navigator<'a> {
                     // fix, is a velocity error the filter did not allow for
                     // (an accelerometer's error it trusted): its velocity is
                     // doubted as much, so the fixes after find it.
-                    // With the gyro's jumps undone, the force the
-                    // accelerometer measured was turned by them since the
-                    // first: the velocity is doubted by what that adds.
-                    let velocity_floor = since.fix_s.map_or(0.0, |dt| {
+                    let velocity_floor = since_fix_s.map_or(0.0, |dt| {
                         let drift = (r.pose.position.0 - f.pose(&q).0.position.0).norm();
                         drift / dt.max(RESTART_MIN_SPAN_S)
                     });
-                    let velocity_floor = velocity_floor.max(since.turned_force_m_s);
                     debug!("t {t:.3}: acquired: the filter's pose restarts from the image's (velocity sigma at least {velocity_floor:.1} m/s)");
                     f.reset_pose(&q, &r.pose, &(r.covariance + calibration_cov), velocity_floor, sensitivity);
                     if f.forget_velocity_beyond(self.params.init_velocity_sigma_m_s) {
@@ -1834,14 +1820,28 @@ impl<'a> Navigator<'a> {
         // (An acquisition in a tile away from the guess would wait for the
         // next frame to confirm it: the jumps undone may explain this one.)
         let held_tile = matches!(&outcome, Ok(sol) if sol.tile.is_some());
+        let mut undone_pred = None;
         let (outcome, undone) = match undo {
             Some((other, image)) if !self.stands(&outcome) || held_tile => match self.solve(t, &other, image)
             {
                 Ok(mut sol) if self.count_check(&sol).is_none() => {
                     debug!("t {t:.3}: the image fixes with the gyro's jumps since the last fix undone");
-                    // Its pose restarts the filter's, as an acquisition's.
-                    sol.acquisition = true;
-                    (Ok(sol), other.jump_turn.map(|j| (j, other.guess)))
+                    match other.filter {
+                        // The inertial filter takes the undo, and the frame
+                        // is judged against it as any other (a narrow
+                        // view's fix, refused for its spread, still
+                        // updates it through its matches).
+                        Carried::Ins(_) => {
+                            undone_pred = Some(self.take_jumps_undone(t, other));
+                            (Ok(sol), None)
+                        }
+                        // Its pose restarts the attitude filter's, as an
+                        // acquisition's.
+                        Carried::Attitude(_) => {
+                            sol.acquisition = true;
+                            (Ok(sol), other.jump_turn.map(|j| (j, other.guess)))
+                        }
+                    }
                 }
                 _ => (outcome, None),
             },
@@ -1860,7 +1860,7 @@ impl<'a> Navigator<'a> {
                 point_ecef: m.point_ecef,
             })
             .collect();
-        let mut pred = pred;
+        let mut pred = undone_pred.unwrap_or(pred);
         let acquisition = matches!(&outcome, Ok(sol) if sol.acquisition);
         let tracked = if acquisition { 0 } else { self.track_update(t, &mut pred.filter, &current) };
         let mut covariance = None;
@@ -1919,11 +1919,7 @@ impl<'a> Navigator<'a> {
                     self.wide_too_wide = false;
                     let ecef = match pred.filter {
                         Carried::Ins(f) => {
-                            let turned_force_m_s = undone.map_or(0.0, |(j, _)| {
-                                turned_force_velocity(&self.imu, j.since_t, t, j.turn_ecef_rad.norm())
-                            });
-                            let since = SinceFix { fix_s: since_fix_s, turned_force_m_s };
-                            self.accept_ins(t, f, &sol, calibration_cov, &sensitivity, since)
+                            self.accept_ins(t, f, &sol, calibration_cov, &sensitivity, since_fix_s)
                         }
                         Carried::Attitude(attitude) => {
                             let guess = undone.map_or(pred.guess, |u| u.1);
@@ -2528,6 +2524,32 @@ impl<'a> Navigator<'a> {
             gyro_jumps: 0,
             jump_turn: pred.jump_turn,
         })
+    }
+
+    /// The inertial filter takes the gyro's jumps since the last fix
+    /// (`undone.jump_turn`) for a glitch: `undone`
+    /// ([`Self::jump_undone_prediction`], whose search stood) with its
+    /// filter's attitude turned back by them and its velocity doubted by
+    /// what the accelerometer's force, turned by them since the first,
+    /// added ([`InsFilter::undo_jumps`]). The frame is then judged against
+    /// it as any other, and the frames after are predicted from it.
+    /// Before, such a fix restarted the filter's pose from the image's, as
+    /// an acquisition's: under a hole in the cloud, a narrow view's fix
+    /// 1059 m off (3.5 sigma) restarted it after a 30 deg glitch, where the
+    /// undo alone kept every fix within 73 m (`scripts/bench_faults.sh`).
+    fn take_jumps_undone(&mut self, t: f64, mut undone: Prediction) -> Prediction {
+        if let (Carried::Ins(f), Some(j)) = (&mut undone.filter, undone.jump_turn) {
+            let velocity_sigma_m_s = turned_force_velocity(&self.imu, j.since_t, t, j.turn_ecef_rad.norm());
+            f.undo_jumps(&j, velocity_sigma_m_s);
+            self.jumps_undone += 1;
+            info!(
+                "t {t:.3}: the gyro's jump(s) since {:.3} s ({:.1} deg) taken for a glitch: the image finds its landmarks with them undone, and the filter takes the undo (velocity doubted by {velocity_sigma_m_s:.1} m/s)",
+                j.since_t,
+                j.turn_ecef_rad.norm().to_degrees()
+            );
+        }
+        undone.jump_turn = None;
+        undone
     }
 
     /// The footprint `fp` widened by an acquisition's margin of `margin_px`

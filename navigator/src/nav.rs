@@ -1505,7 +1505,7 @@ impl<'a> Navigator<'a> {
     /// Frames that found their landmarks with the gyro's jumps since the
     /// fix before undone: a frame whose own search did not stand after a
     /// jump beyond its doubt, searched again as if the jump had been a
-    /// glitch ([`Self::take_jumps_undone`]; with [`FilterMode::Fixes`], an
+    /// glitch (the inertial filter then takes the undo; with [`FilterMode::Fixes`], an
     /// accepted fix so found).
     pub fn gyro_jumps_undone(&self) -> usize {
         self.jumps_undone
@@ -2219,10 +2219,23 @@ impl<'a> Navigator<'a> {
         // kilometres off) is searched in tiles, as many a frame as its work budget allows.
         let need_m = wanted / f * fp.center_range_m;
         // (An oblique view's tiles lie closer along its line of sight.)
-        let mut tiles = if acquisition {
+        let offsets = if acquisition {
             acquisition_tiles(margin_px / f * fp.center_range_m, need_m, sight_line(guess, fp.center_range_m))
         } else {
             Vec::new()
+        };
+        // Headings besides the guess's, where its doubt about the vertical
+        // is more than one search stands (a heading not known, or lost in
+        // a spin the gyro did not see): each tile is searched at each.
+        let up =
+            trn_geodesy::LocalFrame::at(guess.position.to_geodetic()).r_ecef_enu().column(2).into_owned();
+        let heading_sigma_rad = up.dot(&(att_cov * up)).max(0.0).sqrt();
+        let headings = if acquisition { heading_hypotheses(heading_sigma_rad) } else { vec![0.0] };
+        let heading_reach_rad = (2.5 * heading_sigma_rad).min(std::f64::consts::PI);
+        let mut tiles = if offsets.is_empty() && headings.len() > 1 {
+            with_headings(&[Vector2::zeros()], &headings, need_m, heading_reach_rad)
+        } else {
+            with_headings(&offsets, &headings, need_m, heading_reach_rad)
         };
         // Once that wide layout has been searched over, or a wide search's
         // window has been too wide (from the second lost frame on, not after
@@ -2244,13 +2257,20 @@ impl<'a> Navigator<'a> {
         };
         let is_narrow = narrow.is_some();
         if let Some((narrow_tiles, radius_px)) = narrow {
-            tiles = narrow_tiles;
+            tiles = with_headings(&narrow_tiles, &headings, need_m, heading_reach_rad);
             radius_full = radius_px;
             margin_px = radius_px;
         }
         let budget = self.params.acquisition_budget_g * 1e9;
         let cursor = if is_narrow { self.narrow_cursor } else { self.acquisition_cursor };
-        let mut walk = TileWalk::new(cursor, tiles.len(), budget);
+        // With headings, the layout's first tiles (as many as there are
+        // headings, the nearest: mostly the guess's own position at its
+        // nearest headings) are searched again at every frame, the cursor
+        // past them: the wide layout's count goes on into tiles kilometres
+        // out while the doubt grows, and a view that clears (a hole in the
+        // cloud ending) is then found near the guess.
+        let head = if headings.len() > 1 && !is_narrow { headings.len() } else { 0 };
+        let mut walk = TileWalk::new(cursor, tiles.len(), budget).with_head(head);
         let (mut outcome, covered) = if tiles.is_empty() {
             // One search covers the whole layout (a fix resets the mark).
             self.wide_searched |= acquisition;
@@ -2288,6 +2308,7 @@ impl<'a> Navigator<'a> {
             if let Some((narrow_tiles, radius_px)) =
                 self.narrow_layout(t, guess, &fp, &att_cov, radius_full, need_m)
             {
+                let narrow_tiles = with_headings(&narrow_tiles, &headings, need_m, heading_reach_rad);
                 let mut rest = TileWalk::new(self.narrow_cursor, narrow_tiles.len(), budget - walk.spent);
                 debug!(
                     "t {t:.3}: the rest of the budget in {} narrow tiles: {}.. this frame",
@@ -2345,11 +2366,16 @@ impl<'a> Navigator<'a> {
                 // The wide layout has been searched over once.
                 self.wide_searched |= walk.cursor() >= tiles.len();
             }
-            let offset = &tiles[i];
+            let tile = tiles[i];
+            let offset = &tile.offset_m;
             let at = match offset {
                 o if *o == Vector2::zeros() => *guess,
                 o => CameraPose { position: shifted_enu(&guess.position, o), ..*guess },
             };
+            let at = turned_about_vertical(&at, tile.heading_rad);
+            let turned_prior =
+                prior.map(|p| AttitudePrior { q_ecef_cam: at.q_ecef_cam, covariance: p.covariance });
+            let prior = turned_prior.as_ref();
             let Ok(fp_at) = self.footprint_at(&at) else { continue };
             let clock = std::time::Instant::now();
             self.work.set(0);
@@ -2362,9 +2388,10 @@ impl<'a> Navigator<'a> {
                 self.wide_too_wide |= self.wide_window_too_wide();
             }
             debug!(
-                "t {t:.3}: tile {:.0} E {:.0} N: {:.3} G multiply-adds, {:.0} ms, {}",
+                "t {t:.3}: tile {:.0} E {:.0} N {:+.0} deg: {:.3} G multiply-adds, {:.0} ms, {}",
                 offset.x,
                 offset.y,
+                tile.heading_rad.to_degrees(),
                 self.work.get() as f64 * 1e-9,
                 clock.elapsed().as_secs_f64() * 1e3,
                 match &found {
@@ -2376,8 +2403,10 @@ impl<'a> Navigator<'a> {
             // searched, and the strongest failure is what the frame reports.
             if self.stands(&found) {
                 debug!(
-                    "t {t:.3}: acquired in the tile {:.0} m east, {:.0} m north of the guess",
-                    offset.x, offset.y
+                    "t {t:.3}: acquired in the tile {:.0} m east, {:.0} m north of the guess, turned {:+.0} deg",
+                    offset.x,
+                    offset.y,
+                    tile.heading_rad.to_degrees()
                 );
                 return found.map(|sol| Solution { tile: Some(*offset), ..sol });
             }
@@ -3368,13 +3397,91 @@ fn window_positions(width: usize, height: usize, radius: usize, image: &GreyImag
 /// The tiles of one acquisition layout, and how each is searched.
 #[derive(Clone, Copy, Debug)]
 struct TileLayout<'a> {
-    /// East, north offsets of the guess (m), nearest first.
-    tiles: &'a [Vector2<f64>],
+    /// Where each tile searches from, nearest first.
+    tiles: &'a [Tile],
     /// Radius (full-resolution pixels) each tile searches, and widens its
     /// footprint by.
     radius_px: f64,
     /// The narrow layout's (walked with its own cursor), else the wide one's.
     narrow: bool,
+}
+
+/// Where an acquisition's tile searches from: the guess moved east and
+/// north, and turned about the local vertical.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Tile {
+    /// East, north offset of the guess (m).
+    offset_m: Vector2<f64>,
+    /// Turn about the local vertical at the guess (rad, counter-clockwise
+    /// seen from above: a heading error of the guess's attitude).
+    heading_rad: f64,
+}
+
+/// The largest heading error (deg) a search around a guess stands: its
+/// templates, warped as the guess sees them, turn by that in the image
+/// (the edge of a 32-pixel template moves 1.4 px at 5 deg). Beyond,
+/// an acquisition searches headings [`HEADING_STEP_DEG`] apart.
+const HEADING_TOLERANCE_DEG: f64 = 5.0;
+
+/// The step (deg) between the headings an acquisition searches, twice
+/// what one search stands ([`HEADING_TOLERANCE_DEG`]).
+const HEADING_STEP_DEG: f64 = 2.0 * HEADING_TOLERANCE_DEG;
+
+/// The headings (rad, about the local vertical) an acquisition searches
+/// for a heading sigma of `sigma_rad`: 0 alone where 2.5 sigmas are within
+/// [`HEADING_TOLERANCE_DEG`]; else 0, then +-[`HEADING_STEP_DEG`],
+/// +-2 steps, ... out to 2.5 sigmas (at most the whole turn; a sigma that
+/// is not a number: 0 alone).
+fn heading_hypotheses(sigma_rad: f64) -> Vec<f64> {
+    let mut headings = vec![0.0];
+    let reach = (2.5 * sigma_rad).min(std::f64::consts::PI);
+    if sigma_rad.is_nan() || reach <= HEADING_TOLERANCE_DEG.to_radians() {
+        return headings;
+    }
+    let step = HEADING_STEP_DEG.to_radians();
+    let n = ((reach - HEADING_TOLERANCE_DEG.to_radians()) / step).ceil() as i32;
+    for k in 1..=n {
+        let h = k as f64 * step;
+        if h > std::f64::consts::PI + 1e-9 {
+            break;
+        }
+        headings.push(h);
+        if h < std::f64::consts::PI - 1e-9 {
+            headings.push(-h);
+        }
+    }
+    headings
+}
+
+/// An acquisition's tiles: each of `offsets` (east, north, m) at each of
+/// `headings` (rad), nearest first by the sum of the offset's square over
+/// `need_m`'s and the heading's over `heading_reach_rad`'s (the guess
+/// itself first).
+fn with_headings(
+    offsets: &[Vector2<f64>],
+    headings: &[f64],
+    need_m: f64,
+    heading_reach_rad: f64,
+) -> Vec<Tile> {
+    let mut tiles: Vec<(f64, usize, Tile)> = Vec::with_capacity(offsets.len() * headings.len());
+    for o in offsets {
+        for &h in headings {
+            let d = (o.norm() / need_m.max(1.0)).powi(2) + (h / heading_reach_rad.max(1e-9)).powi(2);
+            tiles.push((d, tiles.len(), Tile { offset_m: *o, heading_rad: h }));
+        }
+    }
+    tiles.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+    tiles.into_iter().map(|(_, _, t)| t).collect()
+}
+
+/// `pose` turned by `heading_rad` about the local vertical at its position.
+fn turned_about_vertical(pose: &CameraPose, heading_rad: f64) -> CameraPose {
+    if heading_rad == 0.0 {
+        return *pose;
+    }
+    let up = trn_geodesy::LocalFrame::at(pose.position.to_geodetic()).r_ecef_enu().column(2).into_owned();
+    let turn = UnitQuaternion::from_scaled_axis(up * heading_rad);
+    CameraPose::new(pose.position, turn * pose.q_ecef_cam)
 }
 
 /// The tiles one frame searches: from the cursor on (wrapping), until
@@ -3387,21 +3494,49 @@ struct TileWalk {
     searched: usize,
     spent: f64,
     budget: f64,
+    /// The first tiles searched again at every frame before the cursor's
+    /// (when the cursor is past them), and how many of them this frame has.
+    head: usize,
+    revisited: usize,
 }
 
 impl TileWalk {
     fn new(cursor: usize, len: usize, budget: f64) -> TileWalk {
-        TileWalk { start: if len == 0 { 0 } else { cursor % len }, len, searched: 0, spent: 0.0, budget }
+        TileWalk {
+            start: if len == 0 { 0 } else { cursor % len },
+            len,
+            searched: 0,
+            spent: 0.0,
+            budget,
+            head: 0,
+            revisited: 0,
+        }
+    }
+
+    /// The walk with the first `head` tiles searched first at every frame
+    /// (where the cursor is past them).
+    fn with_head(self, head: usize) -> TileWalk {
+        TileWalk { head: if self.start >= head { head } else { 0 }, ..self }
     }
 
     /// The index of the next tile to search, if the frame has work left.
     fn next_tile(&mut self) -> Option<usize> {
-        if self.searched == self.len || (self.searched > 0 && self.spent >= self.budget) {
-            return None;
+        if self.revisited < self.head {
+            self.revisited += 1;
+            return Some(self.revisited - 1);
         }
-        let i = (self.start + self.searched) % self.len;
-        self.searched += 1;
-        Some(i)
+        // At least one tile from the cursor on, whatever the head spent.
+        loop {
+            if self.searched == self.len || (self.searched > 0 && self.spent >= self.budget) {
+                return None;
+            }
+            let i = (self.start + self.searched) % self.len;
+            self.searched += 1;
+            // (A head tile wrapped to is not searched twice in a frame.)
+            if i >= self.revisited {
+                return Some(i);
+            }
+        }
     }
 
     /// The next frame's cursor: the tiles searched so far, counted on from
@@ -4355,6 +4490,93 @@ mod tests {
         // A cursor past the end wraps; no tiles, no search.
         assert_eq!(frame(9, 10.0).0, vec![2, 3, 4, 5]);
         assert_eq!(TileWalk::new(4, 0, 10.0).next_tile(), None);
+        // With a head of 2: those first, then from the cursor (at least
+        // one, whatever the head spent), never a head tile twice.
+        let headed = |cursor: usize, budget: f64| {
+            let mut walk = TileWalk::new(cursor, work.len(), budget).with_head(2);
+            let mut seen = Vec::new();
+            while let Some(i) = walk.next_tile() {
+                seen.push(i);
+                walk.spend(work[i]);
+            }
+            (seen, walk.cursor())
+        };
+        assert_eq!(headed(4, 10.0), (vec![0, 1, 4], 5));
+        assert_eq!(headed(5, 1e9), (vec![0, 1, 5, 6, 2, 3, 4], 12));
+        // A cursor not past the head yet: the walk as without it.
+        assert_eq!(headed(1, 10.0), frame(1, 10.0));
+    }
+
+    #[test]
+    fn headings_cover_the_doubt_about_the_vertical() {
+        let deg = |v: Vec<f64>| v.iter().map(|h| (h.to_degrees() * 1e6).round() / 1e6).collect::<Vec<_>>();
+        // Within what one search stands: the guess's heading alone.
+        assert_eq!(deg(heading_hypotheses(1f64.to_radians())), vec![0.0]);
+        assert_eq!(deg(heading_hypotheses(2f64.to_radians())), vec![0.0]);
+        assert_eq!(deg(heading_hypotheses(0.0)), vec![0.0]);
+        assert_eq!(deg(heading_hypotheses(f64::NAN)), vec![0.0]);
+        assert_eq!(deg(heading_hypotheses(4f64.to_radians())), vec![0.0, 10.0, -10.0]);
+        assert_eq!(
+            deg(heading_hypotheses(14.1f64.to_radians())),
+            vec![0.0, 10.0, -10.0, 20.0, -20.0, 30.0, -30.0, 40.0, -40.0]
+        );
+        // A heading not known at all: the whole turn, 180 once.
+        let all = heading_hypotheses(100f64.to_radians());
+        assert_eq!(all.len(), 36);
+        assert_eq!(all.iter().filter(|h| (h.abs() - std::f64::consts::PI).abs() < 1e-9).count(), 1);
+        // Every heading error within 2.5 sigmas is within one search of a
+        // hypothesis (brute force, every 0.1 deg).
+        for sigma_deg in [3.0, 7.5, 14.1, 20.0, 45.0, 100.0] {
+            let hs = heading_hypotheses(f64::to_radians(sigma_deg));
+            let reach = (2.5 * sigma_deg).min(180.0);
+            let mut a = -reach;
+            while a <= reach {
+                let near = hs
+                    .iter()
+                    .map(|h| {
+                        let d = (a - h.to_degrees()).rem_euclid(360.0);
+                        d.min(360.0 - d)
+                    })
+                    .fold(f64::INFINITY, f64::min);
+                assert!(
+                    near <= HEADING_TOLERANCE_DEG + 1e-9,
+                    "sigma {sigma_deg}: {a:.1} deg is {near:.2} from {hs:?}"
+                );
+                a += 0.1;
+            }
+        }
+    }
+
+    #[test]
+    fn tiles_at_headings_go_nearest_first() {
+        let ten = 10f64.to_radians();
+        let offsets = [Vector2::zeros(), Vector2::new(1000.0, 0.0)];
+        let tiles = with_headings(&offsets, &[0.0, ten, -ten], 2000.0, 2.0 * ten);
+        let got: Vec<(f64, f64)> = tiles.iter().map(|t| (t.offset_m.x, t.heading_rad)).collect();
+        assert_eq!(
+            got,
+            vec![(0.0, 0.0), (0.0, ten), (0.0, -ten), (1000.0, 0.0), (1000.0, ten), (1000.0, -ten)]
+        );
+        // One heading: the offsets as they were.
+        let plain = with_headings(&offsets, &[0.0], 2000.0, 0.0);
+        assert_eq!(plain.iter().map(|t| t.offset_m).collect::<Vec<_>>(), offsets.to_vec());
+        assert!(with_headings(&[], &[0.0, ten], 2000.0, ten).is_empty());
+    }
+
+    #[test]
+    fn a_guess_turns_about_the_local_vertical() {
+        let frame = LocalFrame::at(Geodetic::new(37.0, -118.0, 0.0));
+        let guess = nadir_pose(&frame, 30_000.0);
+        let turned = turned_about_vertical(&guess, 30f64.to_radians());
+        assert_eq!(turned.position, guess.position);
+        // A nadir camera's boresight stays; its image x axis turns 30 deg
+        // counter-clockwise seen from above (east toward north).
+        assert!(turned.boresight_ecef().angle(&guess.boresight_ecef()) < 1e-9);
+        let x_enu = |p: &CameraPose| frame.vector_to_enu(&(p.q_ecef_cam * Vector3::x()));
+        let (a, b) = (x_enu(&guess), x_enu(&turned));
+        assert!((a.angle(&b).to_degrees() - 30.0).abs() < 1e-6, "{}", a.angle(&b).to_degrees());
+        assert!(a.cross(&b).z > 0.0);
+        assert_eq!(turned_about_vertical(&guess, 0.0), guess);
     }
 
     #[test]

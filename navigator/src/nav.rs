@@ -544,6 +544,8 @@ pub struct Navigator<'a> {
     acquisition_cursor: usize,
     /// The next tile of the narrow layout ([`Navigator::narrow_layout`]).
     narrow_cursor: usize,
+    /// The turned headings' layout's cursor (see `Navigator::solve`).
+    heading_cursor: usize,
     /// Whether the acquisition's wide layout has been searched once over
     /// since the last fix (all its tiles, or its one search): lost frames
     /// then alternate between it and the narrow layout, narrow first (as
@@ -1016,6 +1018,7 @@ impl<'a> Navigator<'a> {
             landmark_runs: HashMap::new(),
             acquisition_cursor: 0,
             narrow_cursor: 0,
+            heading_cursor: 0,
             wide_searched: false,
             alternation: 0,
             wide_too_wide: false,
@@ -1913,6 +1916,7 @@ impl<'a> Navigator<'a> {
                     // A later acquisition in tiles starts from the nearest
                     // (one that failed its confirmation goes on from there).
                     self.acquisition_cursor = 0;
+                    self.heading_cursor = 0;
                     self.narrow_cursor = 0;
                     self.wide_searched = false;
                     self.alternation = 0;
@@ -2224,19 +2228,7 @@ impl<'a> Navigator<'a> {
         } else {
             Vec::new()
         };
-        // Headings besides the guess's, where its doubt about the vertical
-        // is more than one search stands (a heading not known, or lost in
-        // a spin the gyro did not see): each tile is searched at each.
-        let up =
-            trn_geodesy::LocalFrame::at(guess.position.to_geodetic()).r_ecef_enu().column(2).into_owned();
-        let heading_sigma_rad = up.dot(&(att_cov * up)).max(0.0).sqrt();
-        let headings = if acquisition { heading_hypotheses(heading_sigma_rad) } else { vec![0.0] };
-        let heading_reach_rad = (2.5 * heading_sigma_rad).min(std::f64::consts::PI);
-        let mut tiles = if offsets.is_empty() && headings.len() > 1 {
-            with_headings(&[Vector2::zeros()], &headings, need_m, heading_reach_rad)
-        } else {
-            with_headings(&offsets, &headings, need_m, heading_reach_rad)
-        };
+        let mut tiles = with_headings(&offsets, &[0.0], need_m, 0.0);
         // Once that wide layout has been searched over, or a wide search's
         // window has been too wide (from the second lost frame on, not after
         // the whole wide layout: the oblique balloon's ~26 G wide tiles, one a
@@ -2257,20 +2249,13 @@ impl<'a> Navigator<'a> {
         };
         let is_narrow = narrow.is_some();
         if let Some((narrow_tiles, radius_px)) = narrow {
-            tiles = with_headings(&narrow_tiles, &headings, need_m, heading_reach_rad);
+            tiles = with_headings(&narrow_tiles, &[0.0], need_m, 0.0);
             radius_full = radius_px;
             margin_px = radius_px;
         }
         let budget = self.params.acquisition_budget_g * 1e9;
         let cursor = if is_narrow { self.narrow_cursor } else { self.acquisition_cursor };
-        // With headings, the layout's first tiles (as many as there are
-        // headings, the nearest: mostly the guess's own position at its
-        // nearest headings) are searched again at every frame, the cursor
-        // past them: the wide layout's count goes on into tiles kilometres
-        // out while the doubt grows, and a view that clears (a hole in the
-        // cloud ending) is then found near the guess.
-        let head = if headings.len() > 1 && !is_narrow { headings.len() } else { 0 };
-        let mut walk = TileWalk::new(cursor, tiles.len(), budget).with_head(head);
+        let mut walk = TileWalk::new(cursor, tiles.len(), budget);
         let (mut outcome, covered) = if tiles.is_empty() {
             // One search covers the whole layout (a fix resets the mark).
             self.wide_searched |= acquisition;
@@ -2293,7 +2278,7 @@ impl<'a> Navigator<'a> {
                 t,
                 &pyr,
                 guess,
-                TileLayout { tiles: &tiles, radius_px: radius_full, narrow: is_narrow },
+                TileLayout { tiles: &tiles, radius_px: radius_full, narrow: is_narrow, headings: false },
                 prior.as_ref(),
                 &mut walk,
             );
@@ -2308,7 +2293,7 @@ impl<'a> Navigator<'a> {
             if let Some((narrow_tiles, radius_px)) =
                 self.narrow_layout(t, guess, &fp, &att_cov, radius_full, need_m)
             {
-                let narrow_tiles = with_headings(&narrow_tiles, &headings, need_m, heading_reach_rad);
+                let narrow_tiles = with_headings(&narrow_tiles, &[0.0], need_m, 0.0);
                 let mut rest = TileWalk::new(self.narrow_cursor, narrow_tiles.len(), budget - walk.spent);
                 debug!(
                     "t {t:.3}: the rest of the budget in {} narrow tiles: {}.. this frame",
@@ -2319,11 +2304,55 @@ impl<'a> Navigator<'a> {
                     t,
                     &pyr,
                     guess,
-                    TileLayout { tiles: &narrow_tiles, radius_px, narrow: true },
+                    TileLayout { tiles: &narrow_tiles, radius_px, narrow: true, headings: false },
                     prior.as_ref(),
                     &mut rest,
                 );
                 if self.stands(&found) || stronger(&found, &outcome) {
+                    outcome = found;
+                }
+            }
+        }
+        // Headings besides the guess's, where its doubt about the vertical
+        // is more than one search stands (a heading not known, or lost in a
+        // spin the gyro did not see): the wide layout's tiles (or the
+        // guess's one search) turned to each, a layout of their own with
+        // its own cursor and a frame's budget of its own, searched when the
+        // guess's heading found nothing (so what that heading finds, and
+        // when, is as without them).
+        if acquisition && !self.stands(&outcome) {
+            let up =
+                trn_geodesy::LocalFrame::at(guess.position.to_geodetic()).r_ecef_enu().column(2).into_owned();
+            let heading_sigma_rad = up.dot(&(att_cov * up)).max(0.0).sqrt();
+            let headings = heading_hypotheses(heading_sigma_rad);
+            if headings.len() > 1 {
+                let reach_rad = (2.5 * heading_sigma_rad).min(std::f64::consts::PI);
+                let at = if offsets.is_empty() { vec![Vector2::zeros()] } else { offsets.clone() };
+                let turned = with_headings(&at, &headings[1..], need_m, reach_rad);
+                // Its nearest two (the guess's own position at +-10 deg)
+                // again at every frame, the cursor past them: the count
+                // goes on into tiles kilometres out while the doubt grows,
+                // and a view that clears (a hole in the cloud ending) is
+                // then found near the guess.
+                let mut walk = TileWalk::new(self.heading_cursor, turned.len(), budget).with_head(2);
+                debug!(
+                    "t {t:.3}: {} headings within {:.0} deg: {} tiles, {}.. this frame",
+                    headings.len(),
+                    reach_rad.to_degrees(),
+                    turned.len(),
+                    walk.start
+                );
+                let found = self.walk_tiles(
+                    t,
+                    &pyr,
+                    guess,
+                    TileLayout { tiles: &turned, radius_px: radius_full, narrow: false, headings: true },
+                    prior.as_ref(),
+                    &mut walk,
+                );
+                // (Its failures are not the frame's: what the frame reports,
+                // and the misses it counts, are the guess's heading's.)
+                if self.stands(&found) {
                     outcome = found;
                 }
             }
@@ -2356,10 +2385,12 @@ impl<'a> Navigator<'a> {
         prior: Option<&AttitudePrior>,
         walk: &mut TileWalk,
     ) -> Result<Solution, NoSolution> {
-        let TileLayout { tiles, radius_px: radius_full, narrow } = layout;
+        let TileLayout { tiles, radius_px: radius_full, narrow, headings } = layout;
         let mut outcome = Err(NoSolution::default());
         while let Some(i) = walk.next_tile() {
-            if narrow {
+            if headings {
+                self.heading_cursor = walk.cursor();
+            } else if narrow {
                 self.narrow_cursor = walk.cursor();
             } else {
                 self.acquisition_cursor = walk.cursor();
@@ -2384,7 +2415,7 @@ impl<'a> Navigator<'a> {
             self.tile_landmarks.set(None);
             walk.spend(self.work.get() as f64);
             // (A tile off the map searched nothing.)
-            if !narrow && self.work.get() > 0 {
+            if !narrow && !headings && self.work.get() > 0 {
                 self.wide_too_wide |= self.wide_window_too_wide();
             }
             debug!(
@@ -3404,6 +3435,8 @@ struct TileLayout<'a> {
     radius_px: f64,
     /// The narrow layout's (walked with its own cursor), else the wide one's.
     narrow: bool,
+    /// The turned headings' layout (walked with its own cursor).
+    headings: bool,
 }
 
 /// Where an acquisition's tile searches from: the guess moved east and

@@ -3489,13 +3489,18 @@ fn heading_hypotheses(sigma_rad: f64) -> Vec<f64> {
 /// An acquisition's tiles: each of `offsets` (east, north, m) at each of
 /// `headings` (rad), nearest first by the sum of the offset's square over
 /// `need_m`'s and the heading's over `heading_reach_rad`'s (the guess
-/// itself first).
+/// itself first); at one heading, the offsets in their own order (an
+/// oblique view's layout is not ordered by distance alone).
 fn with_headings(
     offsets: &[Vector2<f64>],
     headings: &[f64],
     need_m: f64,
     heading_reach_rad: f64,
 ) -> Vec<Tile> {
+    if headings.len() <= 1 {
+        let h = headings.first().copied().unwrap_or(0.0);
+        return offsets.iter().map(|o| Tile { offset_m: *o, heading_rad: h }).collect();
+    }
     let mut tiles: Vec<(f64, usize, Tile)> = Vec::with_capacity(offsets.len() * headings.len());
     for o in offsets {
         for &h in headings {
@@ -4590,9 +4595,11 @@ mod tests {
             got,
             vec![(0.0, 0.0), (0.0, ten), (0.0, -ten), (1000.0, 0.0), (1000.0, ten), (1000.0, -ten)]
         );
-        // One heading: the offsets as they were.
-        let plain = with_headings(&offsets, &[0.0], 2000.0, 0.0);
-        assert_eq!(plain.iter().map(|t| t.offset_m).collect::<Vec<_>>(), offsets.to_vec());
+        // One heading: the offsets in their own order, not re-sorted.
+        let layout = [Vector2::new(1000.0, 0.0), Vector2::zeros()];
+        let plain = with_headings(&layout, &[0.0], 2000.0, 0.0);
+        assert_eq!(plain.iter().map(|t| t.offset_m).collect::<Vec<_>>(), layout.to_vec());
+        assert!(plain.iter().all(|t| t.heading_rad == 0.0));
         assert!(with_headings(&[], &[0.0, ten], 2000.0, ten).is_empty());
     }
 

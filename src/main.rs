@@ -565,6 +565,18 @@ fn main() -> ExitCode {
         .with_target(false)
         .init();
     let cli = Cli::parse();
+    // A reader that closes the pipe (`trn evaluate ... | head`) ends a
+    // command quietly, as other command-line tools do: Rust ignores
+    // SIGPIPE, and the next print then panicked. Not the server's: a
+    // client's closed socket must not end it.
+    #[cfg(unix)]
+    if !matches!(cli.command, Command::Serve(_)) {
+        // SAFETY: restores one signal's default action, before this process
+        // starts a thread of its own.
+        unsafe {
+            libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+        }
+    }
     let result = match cli.command {
         Command::Build(a) => run_build(a),
         Command::Synth(a) => run_synth(a),

@@ -415,3 +415,35 @@ fn bad_inputs_fail_naming_the_file() {
         &["none", "not a flight folder"],
     );
 }
+
+/// A reader that closed its end of the pipe (`trn evaluate ... | head`):
+/// the command ends on SIGPIPE, quietly, as other command-line tools do.
+/// Before, Rust's ignored SIGPIPE made the first print fail and the
+/// process panic ("failed printing to stdout: Broken pipe", exit 101).
+#[cfg(unix)]
+#[test]
+fn a_closed_pipe_ends_the_output_quietly() {
+    use std::os::fd::FromRawFd;
+    use std::os::unix::process::ExitStatusExt;
+    let dir = tempfile::tempdir().unwrap();
+    let flight = make_flight(dir.path());
+    let poses = dir.path().join("poses.csv");
+    write_poses(&poses, &truth_rows());
+    // A pipe whose read end is closed before trn starts: its first print
+    // meets no reader.
+    let mut fds = [0; 2];
+    // SAFETY: pipe writes two new descriptors into `fds`.
+    assert_eq!(unsafe { libc::pipe(fds.as_mut_ptr()) }, 0);
+    // SAFETY: both descriptors are new and owned here alone.
+    let (read, write) =
+        unsafe { (std::os::fd::OwnedFd::from_raw_fd(fds[0]), std::os::fd::OwnedFd::from_raw_fd(fds[1])) };
+    drop(read);
+    let o = common::trn()
+        .args(["evaluate", "--flight", flight.to_str().unwrap(), "--poses", poses.to_str().unwrap()])
+        .stdout(std::process::Stdio::from(write))
+        .output()
+        .expect("run trn");
+    let err = common::stderr(&o);
+    assert!(!err.contains("panicked"), "{err}");
+    assert_eq!(o.status.signal(), Some(libc::SIGPIPE), "{:?}: {err}", o.status);
+}

@@ -2278,7 +2278,11 @@ impl<'a> Navigator<'a> {
                 t,
                 &pyr,
                 guess,
-                TileLayout { tiles: &tiles, radius_px: radius_full, narrow: is_narrow, headings: false },
+                TileLayout {
+                    tiles: &tiles,
+                    radius_px: radius_full,
+                    kind: if is_narrow { LayoutKind::Narrow } else { LayoutKind::Wide },
+                },
                 prior.as_ref(),
                 &mut walk,
             );
@@ -2304,7 +2308,7 @@ impl<'a> Navigator<'a> {
                     t,
                     &pyr,
                     guess,
-                    TileLayout { tiles: &narrow_tiles, radius_px, narrow: true, headings: false },
+                    TileLayout { tiles: &narrow_tiles, radius_px, kind: LayoutKind::Narrow },
                     prior.as_ref(),
                     &mut rest,
                 );
@@ -2321,14 +2325,14 @@ impl<'a> Navigator<'a> {
         // guess's heading found nothing (so what that heading finds, and
         // when, is as without them).
         if acquisition && !self.stands(&outcome) {
-            let up =
-                trn_geodesy::LocalFrame::at(guess.position.to_geodetic()).r_ecef_enu().column(2).into_owned();
+            let up = local_up(&guess.position);
             let heading_sigma_rad = up.dot(&(att_cov * up)).max(0.0).sqrt();
             let headings = heading_hypotheses(heading_sigma_rad);
             if headings.len() > 1 {
                 let reach_rad = (2.5 * heading_sigma_rad).min(std::f64::consts::PI);
-                let at = if offsets.is_empty() { vec![Vector2::zeros()] } else { offsets.clone() };
-                let turned = with_headings(&at, &headings[1..], need_m, reach_rad);
+                let guess_only = [Vector2::zeros()];
+                let at: &[Vector2<f64>] = if offsets.is_empty() { &guess_only } else { &offsets };
+                let turned = with_headings(at, &headings[1..], need_m, reach_rad);
                 // Its nearest two (the guess's own position at +-10 deg)
                 // again at every frame, the cursor past them: the count
                 // goes on into tiles kilometres out while the doubt grows,
@@ -2346,7 +2350,7 @@ impl<'a> Navigator<'a> {
                     t,
                     &pyr,
                     guess,
-                    TileLayout { tiles: &turned, radius_px: radius_full, narrow: false, headings: true },
+                    TileLayout { tiles: &turned, radius_px: radius_full, kind: LayoutKind::Turned },
                     prior.as_ref(),
                     &mut walk,
                 );
@@ -2385,17 +2389,17 @@ impl<'a> Navigator<'a> {
         prior: Option<&AttitudePrior>,
         walk: &mut TileWalk,
     ) -> Result<Solution, NoSolution> {
-        let TileLayout { tiles, radius_px: radius_full, narrow, headings } = layout;
+        let TileLayout { tiles, radius_px: radius_full, kind } = layout;
         let mut outcome = Err(NoSolution::default());
         while let Some(i) = walk.next_tile() {
-            if headings {
-                self.heading_cursor = walk.cursor();
-            } else if narrow {
-                self.narrow_cursor = walk.cursor();
-            } else {
-                self.acquisition_cursor = walk.cursor();
-                // The wide layout has been searched over once.
-                self.wide_searched |= walk.cursor() >= tiles.len();
+            match kind {
+                LayoutKind::Turned => self.heading_cursor = walk.cursor(),
+                LayoutKind::Narrow => self.narrow_cursor = walk.cursor(),
+                LayoutKind::Wide => {
+                    self.acquisition_cursor = walk.cursor();
+                    // The wide layout has been searched over once.
+                    self.wide_searched |= walk.cursor() >= tiles.len();
+                }
             }
             let tile = tiles[i];
             let offset = &tile.offset_m;
@@ -2415,7 +2419,7 @@ impl<'a> Navigator<'a> {
             self.tile_landmarks.set(None);
             walk.spend(self.work.get() as f64);
             // (A tile off the map searched nothing.)
-            if !narrow && !headings && self.work.get() > 0 {
+            if kind == LayoutKind::Wide && self.work.get() > 0 {
                 self.wide_too_wide |= self.wide_window_too_wide();
             }
             debug!(
@@ -3433,10 +3437,19 @@ struct TileLayout<'a> {
     /// Radius (full-resolution pixels) each tile searches, and widens its
     /// footprint by.
     radius_px: f64,
-    /// The narrow layout's (walked with its own cursor), else the wide one's.
-    narrow: bool,
-    /// The turned headings' layout (walked with its own cursor).
-    headings: bool,
+    /// Which layout (each walked with its own cursor).
+    kind: LayoutKind,
+}
+
+/// An acquisition's layouts of tiles ([`Navigator::walk_tiles`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum LayoutKind {
+    /// The wide layout, at the guess's heading.
+    Wide,
+    /// The narrow layout ([`Navigator::narrow_layout`]).
+    Narrow,
+    /// The wide layout's tiles at the other headings ([`heading_hypotheses`]).
+    Turned,
 }
 
 /// Where an acquisition's tile searches from: the guess moved east and
@@ -3512,13 +3525,17 @@ fn with_headings(
     tiles.into_iter().map(|(_, _, t)| t).collect()
 }
 
+/// The local vertical (ECEF unit vector, up) at `p`.
+fn local_up(p: &trn_geodesy::Ecef) -> Vector3<f64> {
+    trn_geodesy::LocalFrame::at(p.to_geodetic()).r_ecef_enu().column(2).into_owned()
+}
+
 /// `pose` turned by `heading_rad` about the local vertical at its position.
 fn turned_about_vertical(pose: &CameraPose, heading_rad: f64) -> CameraPose {
     if heading_rad == 0.0 {
         return *pose;
     }
-    let up = trn_geodesy::LocalFrame::at(pose.position.to_geodetic()).r_ecef_enu().column(2).into_owned();
-    let turn = UnitQuaternion::from_scaled_axis(up * heading_rad);
+    let turn = UnitQuaternion::from_scaled_axis(local_up(&pose.position) * heading_rad);
     CameraPose::new(pose.position, turn * pose.q_ecef_cam)
 }
 

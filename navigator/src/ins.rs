@@ -281,6 +281,22 @@ pub struct JumpTurn {
     pub since_t: f64,
     /// The turns added up (rad, ECEF rotation vector).
     pub turn_ecef_rad: Vector3<f64>,
+    /// The specific force the inertial filter integrated since the first
+    /// jump, as its attitude turned it (ECEF): its integral (m/s), what it
+    /// added to the velocity...
+    pub force_ecef_m_s: Vector3<f64>,
+    /// ...and that integral's own (m), what it added to the position. Zero
+    /// where no filter integrates the accelerometer.
+    pub force_twice_ecef_m: Vector3<f64>,
+    /// The integral of the force's norm (m/s) and its own (m): an
+    /// attitude error of `a` rad since the first jump moved the position
+    /// by at most `2 sin(a / 2)` times the latter.
+    pub force_norm_m_s: f64,
+    pub force_norm_twice_m: f64,
+    /// The filter's position (m) and velocity (m/s) sigmas at the first
+    /// jump (largest axis); infinite where no filter carried them.
+    pub position_sigma_m: f64,
+    pub velocity_sigma_m_s: f64,
 }
 
 impl JumpTurn {
@@ -288,8 +304,54 @@ impl JumpTurn {
     pub(crate) fn add(record: &mut Option<JumpTurn>, t: f64, turn: Vector3<f64>) {
         match record {
             Some(r) => r.turn_ecef_rad += turn,
-            None => *record = Some(JumpTurn { since_t: t, turn_ecef_rad: turn }),
+            None => {
+                *record = Some(JumpTurn {
+                    since_t: t,
+                    turn_ecef_rad: turn,
+                    force_ecef_m_s: Vector3::zeros(),
+                    force_twice_ecef_m: Vector3::zeros(),
+                    force_norm_m_s: 0.0,
+                    force_norm_twice_m: 0.0,
+                    position_sigma_m: f64::INFINITY,
+                    velocity_sigma_m_s: f64::INFINITY,
+                })
+            }
         }
+    }
+
+    /// How far (1 sigma, m) the position with the jumps undone
+    /// ([`Self::undo_shift`]) may be off at `t`: the filter's position and
+    /// velocity sigmas at the first jump carried on, and the force since
+    /// turned by an attitude error of `attitude_sigma_rad` (what the
+    /// filter's own updates since moved it by, besides the jumps).
+    /// Infinite where no filter carried them.
+    pub fn undone_position_sigma_m(&self, t: f64, attitude_sigma_rad: f64) -> f64 {
+        let dt = (t - self.since_t).max(0.0);
+        self.position_sigma_m
+            + self.velocity_sigma_m_s * dt
+            + 2.0 * (0.5 * attitude_sigma_rad).sin().abs() * self.force_norm_twice_m
+    }
+
+    /// `f_ecef` (m/s^2) integrated for `dt` s (the mechanization's
+    /// trapezoid: the position moves by the velocity's mean over the step).
+    fn integrate_force(&mut self, f_ecef: &Vector3<f64>, dt: f64) {
+        self.force_twice_ecef_m += self.force_ecef_m_s * dt + f_ecef * (0.5 * dt * dt);
+        self.force_ecef_m_s += f_ecef * dt;
+        self.force_norm_twice_m += self.force_norm_m_s * dt + f_ecef.norm() * (0.5 * dt * dt);
+        self.force_norm_m_s += f_ecef.norm() * dt;
+    }
+
+    /// What undoing the turns takes back from the velocity (m/s) and the
+    /// position (m), ECEF: the force was integrated turned by them, `R f`
+    /// where `f` was meant, so each integral `I` of it gains `(R^T - 1) I`
+    /// when turned back (first order in the attitude's other changes since,
+    /// which the fixes made; exact for the turns themselves).
+    pub fn undo_shift(&self) -> (Vector3<f64>, Vector3<f64>) {
+        let back = UnitQuaternion::from_scaled_axis(-self.turn_ecef_rad);
+        (
+            back * self.force_ecef_m_s - self.force_ecef_m_s,
+            back * self.force_twice_ecef_m - self.force_twice_ecef_m,
+        )
     }
 }
 
@@ -700,6 +762,11 @@ impl InsFilter {
         let cap = GYRO_JUMP_MAX_ANGLE_DEG.to_radians();
         if let Some((beyond, added)) = self.gyro_watch.watch(w, dt, limit, GYRO_JUMP_MAX_S, cap) {
             JumpTurn::add(&mut self.jump_turn, t, self.state.q_ecef_imu * beyond * dt);
+            if let Some(j) = self.jump_turn.as_mut().filter(|j| j.position_sigma_m.is_infinite()) {
+                let largest =
+                    |at: usize| (at..at + 3).map(|i| self.covariance[(i, i)]).fold(0.0, f64::max).sqrt();
+                (j.position_sigma_m, j.velocity_sigma_m_s) = (largest(POS), largest(VEL));
+            }
             self.doubt_along(ATT, &beyond, added, acc);
         }
     }
@@ -774,6 +841,9 @@ impl InsFilter {
         if let Some(f_ecef) = measured {
             let a = f_ecef + gravity_ecef(&s.position) - 2.0 * we.cross(&v0);
             s.velocity_ecef_m_s += a * dt;
+            if let Some(j) = &mut self.jump_turn {
+                j.integrate_force(&f_ecef, dt);
+            }
         }
         s.position.0 += (v0 + s.velocity_ecef_m_s) * (0.5 * dt);
         let earth = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), -EARTH_RATE_RAD_S * dt);
@@ -1249,18 +1319,40 @@ impl InsFilter {
     /// Takes the gyro's jumps since the last fix (`jump`) for a glitch, as
     /// a frame that found its landmarks with them undone says: the attitude
     /// is turned back by them (in ECEF, where a turn made at the jump stays
-    /// the same rotation as the body turns on), the jump record is cleared,
-    /// and the velocity is doubted by `velocity_sigma_m_s` per axis (what the
-    /// accelerometer's force, turned by them since the first, added; the
-    /// position by that over half the time since). The attitude keeps the
-    /// jump's own doubt: the next fixes narrow it.
-    pub fn undo_jumps(&mut self, jump: &JumpTurn, velocity_sigma_m_s: f64) {
+    /// the same rotation as the body turns on), the velocity and the
+    /// position lose what the accelerometer's force, turned by them since
+    /// the first, added ([`JumpTurn::undo_shift`]), and the jump record is
+    /// cleared.
+    ///
+    /// The undone state's doubt: the attitude's at most
+    /// `attitude_sigma_rad` on any axis (the undone guess's), the force
+    /// since the jump turned by that much doubting the velocity and the
+    /// position (`2 sin(a / 2)` times the force norm's integral, and its
+    /// own); then what frames without a fix since added (the jumps taken
+    /// for turns left them unexplained) goes: the position's sigma is at
+    /// most the filter's at the jump carried on
+    /// ([`JumpTurn::undone_position_sigma_m`]) and the velocity's its sigma
+    /// at the jump and that doubt, correlations kept.
+    pub fn undo_jumps(&mut self, jump: &JumpTurn, attitude_sigma_rad: f64) {
         let s = &mut self.state;
         s.q_ecef_imu = UnitQuaternion::from_scaled_axis(-jump.turn_ecef_rad) * s.q_ecef_imu;
-        let position_sigma_m = velocity_sigma_m_s * (s.t - jump.since_t).max(0.0) * 0.5;
+        let (dv, dp) = jump.undo_shift();
+        s.velocity_ecef_m_s += dv;
+        s.position.0 += dp;
+        let turned = 2.0 * (0.5 * attitude_sigma_rad).sin().abs();
+        let (v_doubt, p_doubt) = (turned * jump.force_norm_m_s, turned * jump.force_norm_twice_m);
         for i in 0..3 {
-            self.covariance[(VEL + i, VEL + i)] += velocity_sigma_m_s * velocity_sigma_m_s;
-            self.covariance[(POS + i, POS + i)] += position_sigma_m * position_sigma_m;
+            self.covariance[(VEL + i, VEL + i)] += v_doubt * v_doubt;
+            self.covariance[(POS + i, POS + i)] += p_doubt * p_doubt;
+        }
+        let position_most = jump.undone_position_sigma_m(s.t, attitude_sigma_rad);
+        for (at, most) in
+            [(POS, position_most), (ATT, attitude_sigma_rad), (VEL, jump.velocity_sigma_m_s + v_doubt)]
+        {
+            let worst = (at..at + 3).map(|i| self.covariance[(i, i)]).fold(0.0, f64::max).sqrt();
+            if worst > most && most > 0.0 {
+                self.scale_sigmas(at..at + 3, most / worst);
+            }
         }
         self.jump_turn = None;
     }
@@ -2787,27 +2879,40 @@ mod tests {
     }
 
     #[test]
-    fn undoing_the_gyros_jumps_turns_the_attitude_back_and_doubts_the_velocity() {
+    fn undoing_the_gyros_jumps_turns_the_attitude_back_and_doubts_by_the_turned_force() {
         let turn = Turn::new();
         let mut f = InsFilter::new(turn.state(3.0), &init(), errors());
         let before = f.clone();
-        // Turned 0.5 rad about an ECEF axis since 1 s.
-        let jump = JumpTurn { since_t: 1.0, turn_ecef_rad: Vector3::new(0.0, 0.3, 0.4) };
+        // Turned 0.5 rad about an ECEF axis since 1 s, no force integrated
+        // (nothing to take back), 10 m/s of force norm and 20 m of its own
+        // integral since.
+        let jump = JumpTurn {
+            since_t: 1.0,
+            turn_ecef_rad: Vector3::new(0.0, 0.3, 0.4),
+            force_ecef_m_s: Vector3::zeros(),
+            force_twice_ecef_m: Vector3::zeros(),
+            force_norm_m_s: 10.0,
+            force_norm_twice_m: 20.0,
+            position_sigma_m: f64::INFINITY,
+            velocity_sigma_m_s: f64::INFINITY,
+        };
         f.jump_turn = Some(jump);
-        f.undo_jumps(&jump, 2.0);
+        f.undo_jumps(&jump, 0.1);
         assert_eq!(f.jump_turn, None);
         let turned = f.state.q_ecef_imu.angle_to(&before.state.q_ecef_imu);
         assert!((turned - 0.5).abs() < 1e-12, "{turned}");
         let again = UnitQuaternion::from_scaled_axis(jump.turn_ecef_rad) * f.state.q_ecef_imu;
         assert!(again.angle_to(&before.state.q_ecef_imu) < 1e-12);
-        // 2 m/s more per velocity axis, and 2 m/s over half the 2 s since
-        // the jump per position axis; nothing else moves.
+        // The force turned by 0.1 rad, the attitude's doubt (above the
+        // filter's own 0.05 deg: no cap): 2 sin(0.05) of 10 m/s per velocity
+        // axis, of 20 m per position axis; nothing else moves.
+        let chord = 2.0 * 0.05f64.sin();
         for i in 0..N {
             for j in 0..N {
                 let added = f.covariance[(i, j)] - before.covariance[(i, j)];
                 let want = match (i == j, i) {
-                    (true, i) if (VEL..VEL + 3).contains(&i) => 4.0,
-                    (true, i) if (POS..POS + 3).contains(&i) => 4.0,
+                    (true, i) if (VEL..VEL + 3).contains(&i) => (chord * 10.0).powi(2),
+                    (true, i) if (POS..POS + 3).contains(&i) => (chord * 20.0).powi(2),
                     _ => 0.0,
                 };
                 assert!((added - want).abs() < 1e-9, "({i}, {j}): {added}");
@@ -2815,6 +2920,78 @@ mod tests {
         }
         assert_eq!(f.state.position, before.state.position);
         assert_eq!(f.state.velocity_ecef_m_s, before.state.velocity_ecef_m_s);
+        // The doubt frames without a fix added goes: a pose inflated 100
+        // times is capped at the filter's sigmas at the jump carried on (20
+        // m, 1 m/s over the 2 s since, and 20 m of the force's own integral
+        // turned by 0.01 rad: 22.2 m), the attitude at the undone guess's,
+        // the velocity at its sigma at the jump and the turned force's
+        // doubt; correlations kept.
+        let mut g = InsFilter::new(turn.state(3.0), &init(), errors());
+        g.covariance[(POS, POS + 1)] = 100.0;
+        g.covariance[(POS + 1, POS)] = 100.0;
+        g.inflate(100.0);
+        let inflated = g.clone();
+        let jump = JumpTurn { position_sigma_m: 20.0, velocity_sigma_m_s: 1.0, ..jump };
+        g.undo_jumps(&jump, 0.01);
+        let worst =
+            |g: &InsFilter, at: usize| (at..at + 3).map(|i| g.covariance[(i, i)]).fold(0.0, f64::max).sqrt();
+        let p_most = 20.0 + 2.0 + 2.0 * 0.005f64.sin() * 20.0;
+        assert!((jump.undone_position_sigma_m(3.0, 0.01) - p_most).abs() < 1e-12);
+        assert!((worst(&g, POS) - p_most).abs() < 1e-9, "{}", worst(&g, POS));
+        assert!((worst(&g, ATT) - 0.01).abs() < 1e-12, "{}", worst(&g, ATT));
+        let v_most = 1.0 + 2.0 * 0.005f64.sin() * 10.0;
+        assert!((worst(&g, VEL) - v_most).abs() < 1e-9, "{}", worst(&g, VEL));
+        let corr = |g: &InsFilter| {
+            g.covariance[(POS, POS + 1)]
+                / (g.covariance[(POS, POS)] * g.covariance[(POS + 1, POS + 1)]).sqrt()
+        };
+        assert!((corr(&g) - corr(&inflated)).abs() < 1e-6, "{} {}", corr(&g), corr(&inflated));
+    }
+
+    #[test]
+    fn undoing_a_glitch_takes_back_what_its_turned_force_added() {
+        // The 2 km turn (2 g sideways, noise-free samples at 200 Hz) with a
+        // 30 deg glitch about the IMU's x axis at 10 s (four samples of 1500
+        // deg/s), propagated to 25 s: the force integrated turned by 30 deg
+        // for 15 s has moved the position by kilometres.
+        let turn = Turn::new();
+        let (clean, _, _) = turn.imu(200.0, 26.0, None);
+        let mut imu = clean.clone();
+        for s in imu.iter_mut().filter(|s| s.t > 10.0 && s.t < 10.021) {
+            s.w_imu_rad_s.x += 1500f64.to_radians();
+        }
+        let watching = InsErrors { gyro_max_jump_rad_s: 10f64.to_radians(), ..errors() };
+        let run = |imu: &[ImuSample]| {
+            let mut f = InsFilter::new(turn.state(0.0), &init(), watching);
+            f.propagate(25.0, imu);
+            f
+        };
+        let (mut f, quiet) = (run(&imu), run(&clean));
+        let j = f.jump_turn.expect("a jump's turn");
+        let off = |f: &InsFilter| error9(&f.state, &turn.at(25.0));
+        let (e, e_quiet) = (off(&f), off(&quiet));
+        assert!(e.fixed_rows::<3>(3).norm() > 1000.0, "{e}");
+        // At the jump the filter's sigmas were its own (the initial ones,
+        // propagated 10 s), and they are kept for the undone guess's doubt.
+        assert!(j.position_sigma_m > 20.0 && j.position_sigma_m < 40.0, "{j:?}");
+        assert!(j.velocity_sigma_m_s > 1.0 && j.velocity_sigma_m_s < 2.0, "{j:?}");
+        // The force's norm: 2.2 g for 15 s.
+        let g_turn = (9.80 * 9.80 + (2000.0 * 0.01f64).powi(2)).sqrt();
+        assert!((j.force_norm_m_s / (15.0 * g_turn) - 1.0).abs() < 0.01, "{j:?}");
+        assert!((j.force_norm_twice_m / (0.5 * 225.0 * g_turn) - 1.0).abs() < 0.01, "{j:?}");
+        f.undo_jumps(&j, 0.001);
+        // Undone, the state is the unglitched filter's, to the turn's own
+        // dynamics over the glitch's 20 ms (0.03 deg, 1 m, 0.08 m/s).
+        let e = off(&f);
+        let d = e - e_quiet;
+        assert!(d.fixed_rows::<3>(0).norm().to_degrees() < 0.05, "{d}");
+        assert!(d.fixed_rows::<3>(3).norm() < 2.0, "position {d}");
+        assert!(d.fixed_rows::<3>(6).norm() < 0.2, "velocity {d}");
+        // The undone position's doubt: its sigma at the jump, the velocity's
+        // over the 15 s since, and the force turned by the attitude's doubt.
+        let sigma = j.undone_position_sigma_m(25.0, 0.001);
+        let want = j.position_sigma_m + 15.0 * j.velocity_sigma_m_s + 0.001 * j.force_norm_twice_m;
+        assert!((sigma - want).abs() < 1e-3 * want, "{sigma} {want}");
     }
 
     #[test]

@@ -765,12 +765,18 @@ const DOUBT_AFTER_MISSES: usize = 4;
 const JUMP_UNDO_MIN_DEG: f64 = 1.0;
 
 /// How long after the first of the gyro's jumps since the last fix a frame
-/// that does not fix is searched again with them undone (s): undone later,
-/// the force the accelerometer measured meanwhile, turned by them, has
-/// moved the position too far for the search around the guess (a 30 deg
-/// glitch on a balloon: 4.9 m/s^2 across, 61 m after 5 s), and the frames
-/// then only cost twice their search; the run of misses' doubt
-/// ([`DOUBT_AFTER_MISSES`]) goes on from there.
+/// that does not fix is searched again with them undone (s), where no
+/// inertial filter integrates the accelerometer (`--filter fixes`): undone
+/// later, the force measured meanwhile, turned by them, has moved the
+/// position too far for the search around the guess (a 30 deg glitch on a
+/// balloon: 4.9 m/s^2 across, 61 m after 5 s), and the frames then only
+/// cost twice their search; the run of misses' doubt
+/// ([`DOUBT_AFTER_MISSES`]) goes on from there. The inertial filter takes
+/// that force back from the guess ([`JumpTurn::undo_shift`]) and searches
+/// it as long as no frame fixes: through holes in the cloud with the
+/// glitch 10 s into the hole, four runs of 35 then drifted 358-3016 m,
+/// never fixing again (`scripts/bench_faults.sh` on
+/// `scripts/bench_narrow.sh`'s staging).
 const JUMP_UNDO_WITHIN_S: f64 = 5.0;
 
 /// The largest attitude sigma (deg, any axis) that frames without a first
@@ -1911,16 +1917,8 @@ impl<'a> Navigator<'a> {
                     let calibration_cov = self.calibrate(t, &mut sol, frame, &mut pred.filter);
                     let since_fix_s = self.last_fix.map(|(t0, _)| t - t0);
                     self.last_fix = Some((t, sol.pose));
-                    self.misses = 0;
                     self.last_refused = None;
-                    // A later acquisition in tiles starts from the nearest
-                    // (one that failed its confirmation goes on from there).
-                    self.acquisition_cursor = 0;
-                    self.heading_cursor = 0;
-                    self.narrow_cursor = 0;
-                    self.wide_searched = false;
-                    self.alternation = 0;
-                    self.wide_too_wide = false;
+                    self.search_afresh();
                     let ecef = match pred.filter {
                         Carried::Ins(f) => {
                             self.accept_ins(t, f, &sol, calibration_cov, &sensitivity, since_fix_s)
@@ -2563,26 +2561,35 @@ impl<'a> Navigator<'a> {
     /// were glitches, not turns, and the camera looks where it did. Its
     /// guess is `pred`'s turned back by them (in ECEF, where a turn made at
     /// the jump stays the same rotation as the body turns on), its attitude
-    /// sigma at most 1 deg, its position's `pred`'s. `None` without such
-    /// jumps, or [`JUMP_UNDO_WITHIN_S`] after the first. Searched when
-    /// `pred`'s own search does not stand, or stands only in a tile away
-    /// from the guess (held for the next frame to confirm)
-    /// ([`Self::process`]); a fix there restarts the pose, as an
-    /// acquisition's does.
+    /// sigma at most 1 deg. With the inertial filter, its position is
+    /// `pred`'s less what the accelerometer's force, turned by them, added
+    /// ([`JumpTurn::undo_shift`]), its sigma the filter's at the jump
+    /// carried on ([`JumpTurn::undone_position_sigma_m`]) where `pred`'s,
+    /// grown by the frames without a fix since, is wider; searched for as
+    /// long as no frame fixes (a glitch inside a cloud is undone when the
+    /// cloud ends). Without it (`--filter fixes`), `pred`'s position and
+    /// sigma, and `None` [`JUMP_UNDO_WITHIN_S`] after the first jump.
+    /// Searched when `pred`'s own search does not stand, or stands only in
+    /// a tile away from the guess (held for the next frame to confirm)
+    /// ([`Self::process`]).
     fn jump_undone_prediction(&self, t: f64, pred: &Prediction) -> Option<Prediction> {
         let jump = pred.jump_turn?;
+        let shifted = matches!(pred.filter, Carried::Ins(_));
         if !(jump.turn_ecef_rad.norm() >= JUMP_UNDO_MIN_DEG.to_radians())
-            || t - jump.since_t > JUMP_UNDO_WITHIN_S
+            || (!shifted && t - jump.since_t > JUMP_UNDO_WITHIN_S)
         {
             return None;
         }
         let back = UnitQuaternion::from_scaled_axis(-jump.turn_ecef_rad);
-        let guess = CameraPose::new(pred.guess.position, back * pred.guess.q_ecef_cam);
+        let dp = if shifted { jump.undo_shift().1 } else { Vector3::zeros() };
+        let guess =
+            CameraPose::new(trn_geodesy::Ecef(pred.guess.position.0 + dp), back * pred.guess.q_ecef_cam);
         let att_sigma = (pred.att_cov.trace() / 3.0).sqrt().min(1f64.to_radians());
+        let sigma_m = pred.sigma_m.min(jump.undone_position_sigma_m(t, att_sigma));
         Some(Prediction {
             guess,
             att_cov: Matrix3::identity() * att_sigma.powi(2),
-            sigma_m: pred.sigma_m,
+            sigma_m,
             pose_cov: None,
             filter: pred.filter.clone(),
             gyro_jumps: 0,
@@ -2590,26 +2597,46 @@ impl<'a> Navigator<'a> {
         })
     }
 
+    /// A run of misses over, and a later acquisition in tiles starting
+    /// from the nearest (one that failed its confirmation goes on from
+    /// there): after an accepted fix, or a pose the gyro's jumps undone
+    /// explain.
+    fn search_afresh(&mut self) {
+        self.misses = 0;
+        self.acquisition_cursor = 0;
+        self.heading_cursor = 0;
+        self.narrow_cursor = 0;
+        self.wide_searched = false;
+        self.alternation = 0;
+        self.wide_too_wide = false;
+    }
+
     /// The inertial filter takes the gyro's jumps since the last fix
     /// (`undone.jump_turn`) for a glitch: `undone`
     /// ([`Self::jump_undone_prediction`], whose search stood) with its
-    /// filter's attitude turned back by them and its velocity doubted by
-    /// what the accelerometer's force, turned by them since the first,
-    /// added ([`InsFilter::undo_jumps`]). The frame is then judged against
-    /// it as any other, and the frames after are predicted from it.
-    /// Before, such a fix restarted the filter's pose from the image's, as
-    /// an acquisition's: under a hole in the cloud, a narrow view's fix
-    /// 1059 m off (3.5 sigma) restarted it after a 30 deg glitch, where the
-    /// undo alone kept every fix within 73 m (`scripts/bench_faults.sh`).
+    /// filter's attitude turned back by them, its velocity and position
+    /// less what the accelerometer's force, turned by them since the
+    /// first, added, and its pose's doubt the undone guess's
+    /// ([`InsFilter::undo_jumps`]); the run of misses is over (they were
+    /// the glitch's). The frame is then judged against it as any other,
+    /// and the frames after are predicted from it. Before, such a fix
+    /// restarted the filter's pose from the image's, as an acquisition's:
+    /// under a hole in the cloud, a narrow view's fix 1059 m off (3.5
+    /// sigma) restarted it after a 30 deg glitch, where the undo alone kept
+    /// every fix within 73 m (`scripts/bench_faults.sh`).
     fn take_jumps_undone(&mut self, t: f64, mut undone: Prediction) -> Prediction {
         if let (Carried::Ins(f), Some(j)) = (&mut undone.filter, undone.jump_turn) {
-            let velocity_sigma_m_s = turned_force_velocity(&self.imu, j.since_t, t, j.turn_ecef_rad.norm());
-            f.undo_jumps(&j, velocity_sigma_m_s);
+            let att_sigma_rad = (undone.att_cov.trace() / 3.0).sqrt();
+            f.undo_jumps(&j, att_sigma_rad);
+            self.search_afresh();
             self.jumps_undone += 1;
+            let (dv, dp) = j.undo_shift();
             info!(
-                "t {t:.3}: the gyro's jump(s) since {:.3} s ({:.1} deg) taken for a glitch: the image finds its landmarks with them undone, and the filter takes the undo (velocity doubted by {velocity_sigma_m_s:.1} m/s)",
+                "t {t:.3}: the gyro's jump(s) since {:.3} s ({:.1} deg) taken for a glitch: the image finds its landmarks with them undone, and the filter takes the undo (the force they turned had moved the position {:.0} m and the velocity {:.1} m/s)",
                 j.since_t,
-                j.turn_ecef_rad.norm().to_degrees()
+                j.turn_ecef_rad.norm().to_degrees(),
+                dp.norm(),
+                dv.norm()
             );
         }
         undone.jump_turn = None;
@@ -3648,21 +3675,6 @@ fn within_budget(works: &[u64], budget: f64) -> usize {
     fit.max(works.len().min(1))
 }
 
-/// How much velocity (m/s) the specific force the accelerometer measured
-/// between `t0` and `t1` (`imu`'s samples there) gains when turned by
-/// `angle_rad`: `2 sin(angle / 2)` times its integral's length bound, the
-/// integral of its norm. None without an accelerometer.
-fn turned_force_velocity(imu: &[ImuSample], t0: f64, t1: f64, angle_rad: f64) -> f64 {
-    let mut integral = 0.0;
-    for w in imu.windows(2) {
-        let (a, b) = (w[0].t.max(t0), w[1].t.min(t1));
-        if let (true, Some(f)) = (b > a, w[1].f_imu_m_s2) {
-            integral += f.norm() * (b - a);
-        }
-    }
-    2.0 * (0.5 * angle_rad.min(std::f64::consts::PI)).sin() * integral
-}
-
 /// `p` moved by `offset` (east, north; m) in its local level frame.
 fn shifted_enu(p: &trn_geodesy::Ecef, offset: &Vector2<f64>) -> trn_geodesy::Ecef {
     let g = p.to_geodetic();
@@ -4459,25 +4471,6 @@ mod tests {
         let first = HeightGate::new(guess, 0.0, None, 20.0, 30.0);
         assert_eq!(first.check(5929.0), None);
         assert!(first.check(5931.0).is_some() && first.check(4069.0).is_some());
-    }
-
-    #[test]
-    fn a_turned_force_adds_the_velocity_of_its_chord() {
-        // 1 g for 2 s at 100 Hz, then no accelerometer: turned by 30 deg
-        // from 0.5 s to 1.5 s, the velocity gained is 2 sin(15 deg) 9.8 m/s.
-        let imu: Vec<ImuSample> = (0..=300)
-            .map(|k| {
-                let t = k as f64 * 0.01;
-                let f = (t <= 2.0).then(|| Vector3::new(0.0, 0.0, 9.8));
-                ImuSample { t, w_imu_rad_s: Vector3::zeros(), f_imu_m_s2: f }
-            })
-            .collect();
-        let v = turned_force_velocity(&imu, 0.5, 1.5, 30f64.to_radians());
-        let expect = 2.0 * 15f64.to_radians().sin() * 9.8;
-        assert!((v - expect).abs() < 1e-9, "{v} {expect}");
-        // Where the log has no force, none; a half turn at most (a chord of 2).
-        assert_eq!(turned_force_velocity(&imu, 2.0, 3.0, 1.0), 0.0);
-        assert!((turned_force_velocity(&imu, 0.0, 1.0, 7.0) - 2.0 * 9.8).abs() < 1e-9);
     }
 
     #[test]

@@ -345,7 +345,8 @@ impl JumpTurn {
     /// position (m), ECEF: the force was integrated turned by them, `R f`
     /// where `f` was meant, so each integral `I` of it gains `(R^T - 1) I`
     /// when turned back (first order in the attitude's other changes since,
-    /// which the fixes made; exact for the turns themselves).
+    /// which the fixes made; exact for one jump: of several, their sum is
+    /// taken back from the first on).
     pub fn undo_shift(&self) -> (Vector3<f64>, Vector3<f64>) {
         let back = UnitQuaternion::from_scaled_axis(-self.turn_ecef_rad);
         (

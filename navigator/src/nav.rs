@@ -2574,14 +2574,15 @@ impl<'a> Navigator<'a> {
     /// ([`Self::process`]).
     fn jump_undone_prediction(&self, t: f64, pred: &Prediction) -> Option<Prediction> {
         let jump = pred.jump_turn?;
-        let shifted = matches!(pred.filter, Carried::Ins(_));
+        // The inertial filter integrated the turned force: it takes it back.
+        let filtered = matches!(pred.filter, Carried::Ins(_));
         if !(jump.turn_ecef_rad.norm() >= JUMP_UNDO_MIN_DEG.to_radians())
-            || (!shifted && t - jump.since_t > JUMP_UNDO_WITHIN_S)
+            || (!filtered && t - jump.since_t > JUMP_UNDO_WITHIN_S)
         {
             return None;
         }
         let back = UnitQuaternion::from_scaled_axis(-jump.turn_ecef_rad);
-        let dp = if shifted { jump.undo_shift().1 } else { Vector3::zeros() };
+        let dp = if filtered { jump.undo_shift().1 } else { Vector3::zeros() };
         let guess =
             CameraPose::new(trn_geodesy::Ecef(pred.guess.position.0 + dp), back * pred.guess.q_ecef_cam);
         let att_sigma = (pred.att_cov.trace() / 3.0).sqrt().min(1f64.to_radians());

@@ -426,6 +426,13 @@ struct NavigateArgs {
     /// more: every one only so)
     #[arg(long, default_value_t = 24)]
     doubt_min_cells: usize,
+    /// A frame whose matches do not agree counts as a miss (four in a row
+    /// double the pose's doubt) only when they cover at least this many
+    /// cells of the 8x6 image grid: a narrower view's (a hole in the cloud)
+    /// says little of the pose (0, the default: every such frame counts;
+    /// 24 recovered the hole runs that stayed lost, see the README)
+    #[arg(long, default_value_t = 0)]
+    miss_min_cells: usize,
     /// Camera-IMU time offset the inertial filter estimates: its prior
     /// (ms, 1 sigma; 0: the stamps are trusted).
     #[arg(long, default_value_t = 10.0)]
@@ -804,6 +811,7 @@ fn nav_params(a: &NavigateArgs) -> trn_navigator::NavParams {
     params.map_att_sigma_deg = a.map_att_sigma;
     params.map_view_sigma_px = a.map_view_sigma;
     params.doubt_min_cells = a.doubt_min_cells;
+    params.miss_min_cells = a.miss_min_cells;
     params.time_offset_sigma_s = a.time_offset_sigma / 1e3;
     params.prior_gated_update = !a.no_prior_gated_update;
     params.track_update = !a.no_track_update;

@@ -595,6 +595,7 @@ fn bad_inputs_are_named() {
         ("--map-view-sigma", "inf"),
         ("--doubt-min-cells", "many"),
         ("--doubt-min-cells", "2.5"),
+        ("--miss-min-cells", "-1"),
         ("--time-offset-sigma", "nan"),
         ("--track-sigma", "0"),
         ("--track-sigma", "nan"),

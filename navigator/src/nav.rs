@@ -244,6 +244,17 @@ pub struct NavParams {
     /// and 36, but the 640x480 rocket's in its first second, 14). 0: every
     /// inconsistent fix doubts.
     pub doubt_min_cells: usize,
+    /// A frame whose matches (as many as a fix needs) do not agree counts
+    /// as a miss ([`Navigator::count_miss`]; [`DOUBT_AFTER_MISSES`] in a
+    /// row double the pose's doubt) only when they cover at least this
+    /// many cells of `grid` ([`narrow_miss`]): a narrower view's matches
+    /// (a hole in the cloud) disagree whether the pose is right or not.
+    /// Measured (`scripts/bench_faults.sh` on `scripts/bench_narrow.sh`'s
+    /// staging, see the README): with 24, the hole runs that stayed lost
+    /// after a glitch or a gap, their doubt doubled into an acquisition
+    /// that never stood while the pose was 65 m off, fix again. 0 (the
+    /// default): every such frame counts.
+    pub miss_min_cells: usize,
     /// The sun during the flight: picks the database's lighting (its baked
     /// sun nearest to it) when it has several.
     pub sun: Option<SunLight>,
@@ -319,6 +330,7 @@ impl Default for NavParams {
             innovation_gate_chi2: 22.46,
             // Half of the 8 x 6 grid.
             doubt_min_cells: 24,
+            miss_min_cells: 0,
             sun: None,
             shading_weight: 0.5,
             calibration: Some(CalibrationParams::default()),
@@ -1546,6 +1558,17 @@ impl<'a> Navigator<'a> {
         missed
     }
 
+    /// Whether a frame whose matches at `px` did not agree is a narrow
+    /// view's, not to be counted as a miss ([`NavParams::miss_min_cells`]).
+    fn narrow_miss(&self, t: f64, px: &[Pixel]) -> bool {
+        let (w, h) = (self.camera.width as f64, self.camera.height as f64);
+        let narrow = narrow_miss(px, w, h, self.params.grid, self.params.miss_min_cells);
+        if narrow {
+            debug!("t {t:.3}: matches that do not agree in a narrow view: not counted as a miss");
+        }
+        narrow
+    }
+
     /// Frames whose miss, after a fix, doubted the filter's pose (after
     /// four frames whose matches did not agree, each further one doubles its
     /// attitude and position sigmas).
@@ -1947,7 +1970,8 @@ impl<'a> Navigator<'a> {
                         rejection,
                         Some(Rejection::FewInliers { .. } | Rejection::InlierShare { .. })
                     );
-                    let missed = disagreed && self.count_miss(sol.n_matches);
+                    let px: Vec<Pixel> = sol.records.iter().map(|r| Pixel::new(r.u, r.v)).collect();
+                    let missed = disagreed && !self.narrow_miss(t, &px) && self.count_miss(sol.n_matches);
                     if let (Some(Rejection::Inconsistent { .. }), Carried::Ins(f)) =
                         (rejection, &mut pred.filter)
                     {
@@ -1986,7 +2010,8 @@ impl<'a> Navigator<'a> {
                 (status, sol.inliers, sol.n_matches, sol.records, sol.guess_px)
             }
             Err(NoSolution { matches, found }) => {
-                let missed = self.count_miss(matches);
+                let px: Vec<Pixel> = found.iter().map(|m| m.pixel).collect();
+                let missed = !self.narrow_miss(t, &px) && self.count_miss(matches);
                 gated_matches = self.gated_update(t, &mut pred.filter, &found);
                 self.doubt_prediction(t, &mut pred.filter, missed);
                 self.carry(t, pred);
@@ -3198,6 +3223,14 @@ pub fn doubts_filter(cells: usize, min_cells: usize, agrees_with_last: bool, con
     !confirmed || cells >= min_cells || agrees_with_last
 }
 
+/// Whether matches at `px` (a frame's, which did not agree) cover fewer
+/// than `min_cells` cells of a `grid` over a `width x height` image, and
+/// so are a narrow view's, not counted as a miss
+/// ([`NavParams::miss_min_cells`]; 0: never; no match: not one).
+fn narrow_miss(px: &[Pixel], width: f64, height: f64, grid: (usize, usize), min_cells: usize) -> bool {
+    min_cells > 0 && !px.is_empty() && inlier_spread(px, width, height, grid).0 < min_cells
+}
+
 /// A fix's innovation against the inertial filter's prediction (`[dtheta;
 /// dp]`, [`pose_difference`](crate::ins::pose_difference) of the fix's pose and the predicted one) and
 /// the fix's own covariance.
@@ -4335,6 +4368,36 @@ mod tests {
         }
         // 0: every inconsistent fix doubts, as before the option.
         assert!(doubts_filter(box_of(0.3), 0, false, true));
+    }
+
+    #[test]
+    fn a_narrow_views_disagreeing_matches_are_no_miss_when_asked() {
+        let p = NavParams::default();
+        let (w, h) = (1024.0, 768.0);
+        let box_px = |share: f64| -> Vec<Pixel> {
+            let (bw, bh) = (share * w, share * h);
+            (0..60)
+                .map(|i| {
+                    Pixel::new(
+                        0.5 * (w - bw) + bw * (i % 10) as f64 / 9.0,
+                        0.5 * (h - bh) + bh * (i / 10) as f64 / 5.0,
+                    )
+                })
+                .collect()
+        };
+        // Off by default: every disagreeing frame is a miss.
+        assert_eq!(p.miss_min_cells, 0);
+        assert!(!narrow_miss(&box_px(0.3), w, h, p.grid, 0));
+        // With 24 cells: the holes of scripts/bench_narrow.sh (0.3-0.5 of
+        // the sides) are narrow, three quarters of the image or all of it
+        // not, and a frame without matches is no narrow view.
+        for share in [0.3, 0.4, 0.5] {
+            assert!(narrow_miss(&box_px(share), w, h, p.grid, 24), "{share}");
+        }
+        for share in [0.75, 1.0] {
+            assert!(!narrow_miss(&box_px(share), w, h, p.grid, 24), "{share}");
+        }
+        assert!(!narrow_miss(&[], w, h, p.grid, 24));
     }
 
     /// A `[dtheta; dp]` covariance of `att_deg` about and `pos_m` along

@@ -245,9 +245,9 @@ pub struct NavParams {
     /// inconsistent fix doubts.
     pub doubt_min_cells: usize,
     /// A frame whose matches (as many as a fix needs) do not agree counts
-    /// as a miss ([`Navigator::count_miss`]; [`DOUBT_AFTER_MISSES`] in a
-    /// row double the pose's doubt) only when they cover at least this
-    /// many cells of `grid` ([`narrow_miss`]): a narrower view's matches
+    /// as a miss (`Navigator::count_miss`; after `DOUBT_AFTER_MISSES` in a
+    /// row each doubles the pose's doubt) only when they cover at least
+    /// this many cells of `grid` (`narrow_miss`): a narrower view's matches
     /// (a hole in the cloud) disagree whether the pose is right or not.
     /// Measured (`scripts/bench_faults.sh` on `scripts/bench_narrow.sh`'s
     /// staging, see the README): with 24, the hole runs that stayed lost

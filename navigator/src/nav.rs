@@ -1560,9 +1560,14 @@ impl<'a> Navigator<'a> {
 
     /// Whether a frame whose matches at `px` did not agree is a narrow
     /// view's, not to be counted as a miss ([`NavParams::miss_min_cells`]).
-    fn narrow_miss(&self, t: f64, px: &[Pixel]) -> bool {
+    /// The matches' pixels are gathered only when the option is on.
+    fn narrow_miss(&self, t: f64, px: impl Iterator<Item = Pixel>) -> bool {
+        if self.params.miss_min_cells == 0 {
+            return false;
+        }
+        let px: Vec<Pixel> = px.collect();
         let (w, h) = (self.camera.width as f64, self.camera.height as f64);
-        let narrow = narrow_miss(px, w, h, self.params.grid, self.params.miss_min_cells);
+        let narrow = narrow_miss(&px, w, h, self.params.grid, self.params.miss_min_cells);
         if narrow {
             debug!("t {t:.3}: matches that do not agree in a narrow view: not counted as a miss");
         }
@@ -1970,8 +1975,8 @@ impl<'a> Navigator<'a> {
                         rejection,
                         Some(Rejection::FewInliers { .. } | Rejection::InlierShare { .. })
                     );
-                    let px: Vec<Pixel> = sol.records.iter().map(|r| Pixel::new(r.u, r.v)).collect();
-                    let missed = disagreed && !self.narrow_miss(t, &px) && self.count_miss(sol.n_matches);
+                    let px = sol.records.iter().map(|r| Pixel::new(r.u, r.v));
+                    let missed = disagreed && !self.narrow_miss(t, px) && self.count_miss(sol.n_matches);
                     if let (Some(Rejection::Inconsistent { .. }), Carried::Ins(f)) =
                         (rejection, &mut pred.filter)
                     {
@@ -2010,8 +2015,7 @@ impl<'a> Navigator<'a> {
                 (status, sol.inliers, sol.n_matches, sol.records, sol.guess_px)
             }
             Err(NoSolution { matches, found }) => {
-                let px: Vec<Pixel> = found.iter().map(|m| m.pixel).collect();
-                let missed = !self.narrow_miss(t, &px) && self.count_miss(matches);
+                let missed = !self.narrow_miss(t, found.iter().map(|m| m.pixel)) && self.count_miss(matches);
                 gated_matches = self.gated_update(t, &mut pred.filter, &found);
                 self.doubt_prediction(t, &mut pred.filter, missed);
                 self.carry(t, pred);
@@ -4318,17 +4322,7 @@ mod tests {
         // the image's sides cover enough cells but are refused by the default
         // spread; a box of 35% of the sides is taken.
         let p = NavParams::default();
-        let hole = |share: f64| -> Vec<Pixel> {
-            let (bw, bh) = (share * w, share * h);
-            (0..100)
-                .map(|i| {
-                    Pixel::new(
-                        0.5 * (w - bw) + bw * (i % 10) as f64 / 9.0,
-                        0.5 * (h - bh) + bh * (i / 10) as f64 / 9.0,
-                    )
-                })
-                .collect()
-        };
+        let hole = |share: f64| centred_box(w, h, share, 10, 10);
         let (cells, spread) = inlier_spread(&hole(0.25), w, h, p.grid);
         assert!(cells >= p.min_inlier_cells && spread < p.min_inlier_spread * h, "{cells} {spread}");
         let (cells, spread) = inlier_spread(&hole(0.35), w, h, p.grid);
@@ -4339,18 +4333,7 @@ mod tests {
     fn a_narrow_views_inconsistent_fix_doubts_the_filter_only_when_another_agrees() {
         let p = NavParams::default();
         let (w, h) = (1024.0, 768.0);
-        let box_of = |share: f64| -> usize {
-            let (bw, bh) = (share * w, share * h);
-            let px: Vec<Pixel> = (0..400)
-                .map(|i| {
-                    Pixel::new(
-                        0.5 * (w - bw) + bw * (i % 20) as f64 / 19.0,
-                        0.5 * (h - bh) + bh * (i / 20) as f64 / 19.0,
-                    )
-                })
-                .collect();
-            inlier_spread(&px, w, h, p.grid).0
-        };
+        let box_of = |share: f64| inlier_spread(&centred_box(w, h, share, 20, 20), w, h, p.grid).0;
         // The holes of scripts/bench_narrow.sh (0.3-0.5 of the sides) are
         // narrow: an inconsistent fix of one leaves the filter as it is
         // unless it agrees with the one before.
@@ -4370,21 +4353,25 @@ mod tests {
         assert!(doubts_filter(box_of(0.3), 0, false, true));
     }
 
+    /// A `cols x rows` lattice over a centred box of `share` of a `w x h`
+    /// image's sides (a hole in the cloud), corners included.
+    fn centred_box(w: f64, h: f64, share: f64, cols: usize, rows: usize) -> Vec<Pixel> {
+        let (bw, bh) = (share * w, share * h);
+        (0..cols * rows)
+            .map(|i| {
+                Pixel::new(
+                    0.5 * (w - bw) + bw * (i % cols) as f64 / (cols - 1) as f64,
+                    0.5 * (h - bh) + bh * (i / cols) as f64 / (rows - 1) as f64,
+                )
+            })
+            .collect()
+    }
+
     #[test]
     fn a_narrow_views_disagreeing_matches_are_no_miss_when_asked() {
         let p = NavParams::default();
         let (w, h) = (1024.0, 768.0);
-        let box_px = |share: f64| -> Vec<Pixel> {
-            let (bw, bh) = (share * w, share * h);
-            (0..60)
-                .map(|i| {
-                    Pixel::new(
-                        0.5 * (w - bw) + bw * (i % 10) as f64 / 9.0,
-                        0.5 * (h - bh) + bh * (i / 10) as f64 / 5.0,
-                    )
-                })
-                .collect()
-        };
+        let box_px = |share: f64| centred_box(w, h, share, 10, 6);
         // Off by default: every disagreeing frame is a miss.
         assert_eq!(p.miss_min_cells, 0);
         assert!(!narrow_miss(&box_px(0.3), w, h, p.grid, 0));

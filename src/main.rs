@@ -8,7 +8,7 @@ use std::process::ExitCode;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
-use clap::{Parser, Subcommand, ValueEnum};
+use clap::{CommandFactory, FromArgMatches, Parser, Subcommand, ValueEnum};
 use tracing_subscriber::EnvFilter;
 use trn_builder::{BuildOptions, DemVertical};
 
@@ -26,6 +26,31 @@ static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 struct Cli {
     #[command(subcommand)]
     command: Command,
+}
+
+impl Cli {
+    /// The command line as clap reads it, but that a negative number after
+    /// an option is that option's value: `--miss-min-cells -1` is then
+    /// refused as the option's invalid value, naming it, where clap took
+    /// `-1` for an unknown flag and named no option; and an option whose
+    /// negative values mean something (`trn synth --east -500`) takes
+    /// them without `=`.
+    fn command_line() -> clap::Command {
+        Self::command().mut_subcommands(|sub| {
+            sub.mut_args(
+                |arg| if arg.get_action().takes_values() { arg.allow_negative_numbers(true) } else { arg },
+            )
+        })
+    }
+
+    /// [`Cli::command_line`] parsed from `args` (the program's name first).
+    fn try_parse_args<I, T>(args: I) -> Result<Self, clap::Error>
+    where
+        I: IntoIterator<Item = T>,
+        T: Into<std::ffi::OsString> + Clone,
+    {
+        Self::command_line().try_get_matches_from(args).and_then(|m| Self::from_arg_matches(&m))
+    }
 }
 
 #[derive(Subcommand)]
@@ -427,11 +452,11 @@ struct NavigateArgs {
     #[arg(long, default_value_t = 24)]
     doubt_min_cells: usize,
     /// A frame whose matches do not agree counts as a miss (four in a row
-    /// double the pose's doubt) only when they cover at least this many
+    /// double the pose's doubt) only when they span at least this many
     /// cells of the 8x6 image grid: a narrower view's (a hole in the cloud)
-    /// says little of the pose (0, the default: every such frame counts;
-    /// 24 recovered the hole runs that stayed lost, see the README)
-    #[arg(long, default_value_t = 0)]
+    /// says little of the pose (0: every such frame counts; 24 recovers the
+    /// hole runs that stayed lost, see the README)
+    #[arg(long, default_value_t = 24)]
     miss_min_cells: usize,
     /// Camera-IMU time offset the inertial filter estimates: its prior
     /// (ms, 1 sigma; 0: the stamps are trusted).
@@ -571,7 +596,7 @@ fn main() -> ExitCode {
         .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .with_target(false)
         .init();
-    let cli = Cli::parse();
+    let cli = Cli::try_parse_args(std::env::args_os()).unwrap_or_else(|e| e.exit());
     // A reader that closes the pipe (`trn evaluate ... | head`) ends a
     // command quietly, as other command-line tools do: Rust ignores
     // SIGPIPE, and the next print then panicked. Not the server's: a
@@ -1157,7 +1182,7 @@ mod tests {
     #[test]
     fn navigate_defaults_are_the_navigators() {
         let cli =
-            Cli::try_parse_from(["trn", "navigate", "--db", "l.gpkg", "--flight", "f", "--out", "p.csv"])
+            Cli::try_parse_args(["trn", "navigate", "--db", "l.gpkg", "--flight", "f", "--out", "p.csv"])
                 .expect("minimal navigate arguments parse");
         let Command::Navigate(a) = cli.command else { panic!("not navigate") };
         let from_cli = format!("{:?}", nav_params(&a));
@@ -1165,11 +1190,36 @@ mod tests {
         assert_same_fields(&from_cli, &library);
     }
 
+    /// A negative number after an option is its value: refused by the
+    /// option's own parser (naming the option) where it cannot be negative,
+    /// taken where it can.
+    #[test]
+    fn a_negative_number_is_the_options_value() {
+        let args = ["trn", "navigate", "--db", "l.gpkg", "--flight", "f", "--out", "p.csv"];
+        for (option, value) in [("--miss-min-cells", "-1"), ("--min-inliers", "-3"), ("--threads", "-2")] {
+            let err = Cli::try_parse_args(args.into_iter().chain([option, value]))
+                .err()
+                .unwrap_or_else(|| panic!("{option} {value} parsed"));
+            assert_eq!(err.kind(), clap::error::ErrorKind::ValueValidation, "{option} {value}: {err}");
+            let message = err.to_string();
+            assert!(message.contains(option) && message.contains(value), "{option} {value}: {message}");
+        }
+        let cli = Cli::try_parse_args([
+            "trn", "synth", "--ortho", "o.tif", "--dem", "d.tif", "--east", "-500", "--north", "-250.5",
+        ])
+        .expect("negative offsets parse");
+        let Command::Synth(a) = cli.command else { panic!("not synth") };
+        assert_eq!((a.east, a.north), (-500.0, -250.5));
+        // A flag is still a flag: `-h` is not taken for a value.
+        let err = Cli::try_parse_args(args.into_iter().chain(["--min-inliers", "-h"])).err().expect("-h");
+        assert_ne!(err.kind(), clap::error::ErrorKind::ValueValidation);
+    }
+
     /// `trn build`'s option defaults are the builder's own, likewise.
     #[test]
     fn build_defaults_are_the_builders() {
         let cli =
-            Cli::try_parse_from(["trn", "build", "--ortho", "o.tif", "--dem", "d.tif", "--out", "l.gpkg"])
+            Cli::try_parse_args(["trn", "build", "--ortho", "o.tif", "--dem", "d.tif", "--out", "l.gpkg"])
                 .expect("minimal build arguments parse");
         let Command::Build(a) = cli.command else { panic!("not build") };
         let library = BuildOptions::new(vec!["o.tif".into()], vec!["d.tif".into()], "l.gpkg".into());

@@ -597,6 +597,11 @@ fn bad_inputs_are_named() {
         ("--doubt-min-cells", "2.5"),
         ("--miss-min-cells", "many"),
         ("--miss-min-cells", "2.5"),
+        // A negative number is the option's value (refused, the option
+        // named), not an unknown flag.
+        ("--miss-min-cells", "-1"),
+        ("--max-landmarks", "-5"),
+        ("--gyro-arw", "-1"),
         ("--time-offset-sigma", "nan"),
         ("--track-sigma", "0"),
         ("--track-sigma", "nan"),
@@ -635,6 +640,19 @@ fn bad_inputs_are_named() {
         "--size",
         "64",
         "--relief=-5",
+    ]);
+    assert!(!o.status.success());
+    assert!(stderr(&o).contains("--relief"), "{}", stderr(&o));
+    let o = run(&[
+        "synth",
+        "--ortho",
+        ortho.to_str().unwrap(),
+        "--dem",
+        dem.to_str().unwrap(),
+        "--size",
+        "64",
+        "--relief",
+        "-5",
     ]);
     assert!(!o.status.success());
     assert!(stderr(&o).contains("--relief"), "{}", stderr(&o));

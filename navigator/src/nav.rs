@@ -246,14 +246,15 @@ pub struct NavParams {
     pub doubt_min_cells: usize,
     /// A frame whose matches (as many as a fix needs) do not agree counts
     /// as a miss (`Navigator::count_miss`; after `DOUBT_AFTER_MISSES` in a
-    /// row each doubles the pose's doubt) only when they cover at least
-    /// this many cells of `grid` (`narrow_miss`): a narrower view's matches
-    /// (a hole in the cloud) disagree whether the pose is right or not.
-    /// Measured (`scripts/bench_faults.sh` on `scripts/bench_narrow.sh`'s
-    /// staging, see the README): with 24, the hole runs that stayed lost
-    /// after a glitch or a gap, their doubt doubled into an acquisition
-    /// that never stood while the pose was 65 m off, fix again. 0 (the
-    /// default): every such frame counts.
+    /// row each doubles the pose's doubt) only when they span at least
+    /// this many cells of `grid` (`narrow_miss`; the block of cells from
+    /// the leftmost match to the rightmost, the top one to the bottom one):
+    /// a narrower view's matches (a hole in the cloud) disagree whether the
+    /// pose is right or not. Measured (`scripts/bench_faults.sh` on
+    /// `scripts/bench_narrow.sh`'s staging, see the README): with 24, the
+    /// hole runs that stayed lost after a glitch or a gap, their doubt
+    /// doubled into an acquisition that never stood while the pose was
+    /// 65 m off, fix again. 0: every such frame counts.
     pub miss_min_cells: usize,
     /// The sun during the flight: picks the database's lighting (its baked
     /// sun nearest to it) when it has several.
@@ -330,7 +331,7 @@ impl Default for NavParams {
             innovation_gate_chi2: 22.46,
             // Half of the 8 x 6 grid.
             doubt_min_cells: 24,
-            miss_min_cells: 0,
+            miss_min_cells: 24,
             sun: None,
             shading_weight: 0.5,
             calibration: Some(CalibrationParams::default()),
@@ -3227,12 +3228,33 @@ pub fn doubts_filter(cells: usize, min_cells: usize, agrees_with_last: bool, con
     !confirmed || cells >= min_cells || agrees_with_last
 }
 
-/// Whether matches at `px` (a frame's, which did not agree) cover fewer
-/// than `min_cells` cells of a `grid` over a `width x height` image, and
-/// so are a narrow view's, not counted as a miss
-/// ([`NavParams::miss_min_cells`]; 0: never; no match: not one).
+/// Whether matches at `px` (a frame's, which did not agree) span fewer
+/// than `min_cells` cells of a `grid` over a `width x height` image
+/// ([`spanned_cells`]), and so are a narrow view's, not counted as a miss
+/// ([`NavParams::miss_min_cells`]; 0: never; no match: not one). The
+/// span, not the cells the matches fall in: a wide view's few scattered
+/// matches fall in few cells but span most of the image.
 fn narrow_miss(px: &[Pixel], width: f64, height: f64, grid: (usize, usize), min_cells: usize) -> bool {
-    min_cells > 0 && !px.is_empty() && inlier_spread(px, width, height, grid).0 < min_cells
+    min_cells > 0 && !px.is_empty() && spanned_cells(px, width, height, grid) < min_cells
+}
+
+/// Cells of a `grid` over a `w x h` image in the smallest block of cells
+/// that holds every pixel of `px` (from the leftmost match's column to the
+/// rightmost's, the top one's row to the bottom one's); 0 without pixels.
+fn spanned_cells(px: &[Pixel], w: f64, h: f64, grid: (usize, usize)) -> usize {
+    let (gx, gy) = grid;
+    // `as usize` saturates: left of or above the image is cell 0.
+    let col = |p: &Pixel| (((p.u / w) * gx as f64) as usize).min(gx - 1);
+    let row = |p: &Pixel| (((p.v / h) * gy as f64) as usize).min(gy - 1);
+    let span = |cells: &mut dyn Iterator<Item = usize>| {
+        cells.fold(None, |r: Option<(usize, usize)>, c| {
+            Some(r.map_or((c, c), |(lo, hi)| (lo.min(c), hi.max(c))))
+        })
+    };
+    match (span(&mut px.iter().map(col)), span(&mut px.iter().map(row))) {
+        (Some((c0, c1)), Some((r0, r1))) => (c1 - c0 + 1) * (r1 - r0 + 1),
+        _ => 0,
+    }
 }
 
 /// A fix's innovation against the inertial filter's prediction (`[dtheta;
@@ -4368,23 +4390,33 @@ mod tests {
     }
 
     #[test]
-    fn a_narrow_views_disagreeing_matches_are_no_miss_when_asked() {
+    fn a_narrow_views_disagreeing_matches_are_no_miss() {
         let p = NavParams::default();
         let (w, h) = (1024.0, 768.0);
         let box_px = |share: f64| centred_box(w, h, share, 10, 6);
-        // Off by default: every disagreeing frame is a miss.
-        assert_eq!(p.miss_min_cells, 0);
+        assert_eq!(p.miss_min_cells, 24);
+        // Off (0): every disagreeing frame is a miss.
         assert!(!narrow_miss(&box_px(0.3), w, h, p.grid, 0));
-        // With 24 cells: the holes of scripts/bench_narrow.sh (0.3-0.5 of
-        // the sides) are narrow, three quarters of the image or all of it
+        // With the default, 24 cells: the holes of scripts/bench_narrow.sh
+        // (0.3-0.5 of the sides) are narrow, three quarters of the image or all of it
         // not, and a frame without matches is no narrow view.
         for share in [0.3, 0.4, 0.5] {
-            assert!(narrow_miss(&box_px(share), w, h, p.grid, 24), "{share}");
+            assert!(narrow_miss(&box_px(share), w, h, p.grid, p.miss_min_cells), "{share}");
         }
         for share in [0.75, 1.0] {
-            assert!(!narrow_miss(&box_px(share), w, h, p.grid, 24), "{share}");
+            assert!(!narrow_miss(&box_px(share), w, h, p.grid, p.miss_min_cells), "{share}");
         }
-        assert!(!narrow_miss(&[], w, h, p.grid, 24));
+        assert!(!narrow_miss(&[], w, h, p.grid, p.miss_min_cells));
+        // A wide view's few scattered matches (a turned attitude's wrong
+        // ones) fall in 5 cells but span the image: no narrow view.
+        let scattered = [(100.0, 80.0), (900.0, 120.0), (500.0, 400.0), (150.0, 700.0), (950.0, 690.0)]
+            .map(|(u, v)| Pixel::new(u, v));
+        assert_eq!(inlier_spread(&scattered, w, h, p.grid).0, 5);
+        assert_eq!(spanned_cells(&scattered, w, h, p.grid), 48);
+        assert!(!narrow_miss(&scattered, w, h, p.grid, p.miss_min_cells));
+        // Three of them on one row of cells: a strip 8 cells long.
+        let strip = [(100.0, 80.0), (900.0, 120.0), (500.0, 60.0)].map(|(u, v)| Pixel::new(u, v));
+        assert_eq!(spanned_cells(&strip, w, h, p.grid), 8);
     }
 
     /// A `[dtheta; dp]` covariance of `att_deg` about and `pos_m` along

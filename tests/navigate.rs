@@ -648,33 +648,15 @@ fn bad_inputs_are_named() {
     assert!(!o.status.success());
     let e = stderr(&o);
     assert!(e.contains("--principal-point-from-tracks") && e.contains("--inertial-principal-point"), "{e}");
-    // trn synth checks its relief too, before writing anything.
+    // trn synth checks its relief too, before writing anything, with the
+    // negative value given either way.
     let (ortho, dem) = (dir.path().join("o.tif"), dir.path().join("d.tif"));
-    let o = run(&[
-        "synth",
-        "--ortho",
-        ortho.to_str().unwrap(),
-        "--dem",
-        dem.to_str().unwrap(),
-        "--size",
-        "64",
-        "--relief=-5",
-    ]);
-    assert!(!o.status.success());
-    assert!(stderr(&o).contains("--relief"), "{}", stderr(&o));
-    let o = run(&[
-        "synth",
-        "--ortho",
-        ortho.to_str().unwrap(),
-        "--dem",
-        dem.to_str().unwrap(),
-        "--size",
-        "64",
-        "--relief",
-        "-5",
-    ]);
-    assert!(!o.status.success());
-    assert!(stderr(&o).contains("--relief"), "{}", stderr(&o));
+    let files = ["--ortho", ortho.to_str().unwrap(), "--dem", dem.to_str().unwrap(), "--size", "64"];
+    for relief in [&["--relief=-5"][..], &["--relief", "-5"]] {
+        let o = run(&[&["synth"][..], &files, relief].concat());
+        assert!(!o.status.success());
+        assert!(stderr(&o).contains("--relief"), "{relief:?}: {}", stderr(&o));
+    }
     assert!(!ortho.exists() && !dem.exists());
 }
 

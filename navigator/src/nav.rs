@@ -1561,14 +1561,9 @@ impl<'a> Navigator<'a> {
 
     /// Whether a frame whose matches at `px` did not agree is a narrow
     /// view's, not to be counted as a miss ([`NavParams::miss_min_cells`]).
-    /// The matches' pixels are gathered only when the option is on.
     fn narrow_miss(&self, t: f64, px: impl Iterator<Item = Pixel>) -> bool {
-        if self.params.miss_min_cells == 0 {
-            return false;
-        }
-        let px: Vec<Pixel> = px.collect();
         let (w, h) = (self.camera.width as f64, self.camera.height as f64);
-        let narrow = narrow_miss(&px, w, h, self.params.grid, self.params.miss_min_cells);
+        let narrow = narrow_miss(px, w, h, self.params.grid, self.params.miss_min_cells);
         if narrow {
             debug!("t {t:.3}: matches that do not agree in a narrow view: not counted as a miss");
         }
@@ -3209,9 +3204,8 @@ pub fn inlier_spread(px: &[Pixel], w: f64, h: f64, grid: (usize, usize)) -> (usi
     let (gx, gy) = grid;
     let mut seen = vec![false; gx * gy];
     for p in px {
-        // `as usize` saturates: left of or above the image is cell 0.
-        let (cx, cy) = (((p.u / w) * gx as f64) as usize, ((p.v / h) * gy as f64) as usize);
-        seen[cy.min(gy - 1) * gx + cx.min(gx - 1)] = true;
+        let (cx, cy) = grid_cell(p, w, h, grid);
+        seen[cy * gx + cx] = true;
     }
     (seen.iter().filter(|&&s| s).count(), minor.max(0.0).sqrt())
 }
@@ -3234,27 +3228,36 @@ pub fn doubts_filter(cells: usize, min_cells: usize, agrees_with_last: bool, con
 /// ([`NavParams::miss_min_cells`]; 0: never; no match: not one). The
 /// span, not the cells the matches fall in: a wide view's few scattered
 /// matches fall in few cells but span most of the image.
-fn narrow_miss(px: &[Pixel], width: f64, height: f64, grid: (usize, usize), min_cells: usize) -> bool {
-    min_cells > 0 && !px.is_empty() && spanned_cells(px, width, height, grid) < min_cells
+fn narrow_miss(
+    px: impl IntoIterator<Item = Pixel>,
+    width: f64,
+    height: f64,
+    grid: (usize, usize),
+    min_cells: usize,
+) -> bool {
+    min_cells > 0 && (1..min_cells).contains(&spanned_cells(px, width, height, grid))
 }
 
 /// Cells of a `grid` over a `w x h` image in the smallest block of cells
 /// that holds every pixel of `px` (from the leftmost match's column to the
 /// rightmost's, the top one's row to the bottom one's); 0 without pixels.
-fn spanned_cells(px: &[Pixel], w: f64, h: f64, grid: (usize, usize)) -> usize {
-    let (gx, gy) = grid;
-    // `as usize` saturates: left of or above the image is cell 0.
-    let col = |p: &Pixel| (((p.u / w) * gx as f64) as usize).min(gx - 1);
-    let row = |p: &Pixel| (((p.v / h) * gy as f64) as usize).min(gy - 1);
-    let span = |cells: &mut dyn Iterator<Item = usize>| {
-        cells.fold(None, |r: Option<(usize, usize)>, c| {
-            Some(r.map_or((c, c), |(lo, hi)| (lo.min(c), hi.max(c))))
+fn spanned_cells(px: impl IntoIterator<Item = Pixel>, w: f64, h: f64, grid: (usize, usize)) -> usize {
+    px.into_iter()
+        .map(|p| grid_cell(&p, w, h, grid))
+        .fold(None, |span, (c, r)| {
+            Some(span.map_or((c, c, r, r), |(c0, c1, r0, r1): (usize, usize, usize, usize)| {
+                (c0.min(c), c1.max(c), r0.min(r), r1.max(r))
+            }))
         })
-    };
-    match (span(&mut px.iter().map(col)), span(&mut px.iter().map(row))) {
-        (Some((c0, c1)), Some((r0, r1))) => (c1 - c0 + 1) * (r1 - r0 + 1),
-        _ => 0,
-    }
+        .map_or(0, |(c0, c1, r0, r1)| (c1 - c0 + 1) * (r1 - r0 + 1))
+}
+
+/// The cell `(column, row)` of a `grid` over a `w x h` image that pixel
+/// `p` falls in; a pixel outside the image counts in the nearest cell
+/// (`as usize` saturates: left of or above the image is cell 0).
+fn grid_cell(p: &Pixel, w: f64, h: f64, grid: (usize, usize)) -> (usize, usize) {
+    let (gx, gy) = grid;
+    ((((p.u / w) * gx as f64) as usize).min(gx - 1), (((p.v / h) * gy as f64) as usize).min(gy - 1))
 }
 
 /// A fix's innovation against the inertial filter's prediction (`[dtheta;
@@ -4396,27 +4399,27 @@ mod tests {
         let box_px = |share: f64| centred_box(w, h, share, 10, 6);
         assert_eq!(p.miss_min_cells, 24);
         // Off (0): every disagreeing frame is a miss.
-        assert!(!narrow_miss(&box_px(0.3), w, h, p.grid, 0));
+        assert!(!narrow_miss(box_px(0.3), w, h, p.grid, 0));
         // With the default, 24 cells: the holes of scripts/bench_narrow.sh
         // (0.3-0.5 of the sides) are narrow, three quarters of the image or all of it
         // not, and a frame without matches is no narrow view.
         for share in [0.3, 0.4, 0.5] {
-            assert!(narrow_miss(&box_px(share), w, h, p.grid, p.miss_min_cells), "{share}");
+            assert!(narrow_miss(box_px(share), w, h, p.grid, p.miss_min_cells), "{share}");
         }
         for share in [0.75, 1.0] {
-            assert!(!narrow_miss(&box_px(share), w, h, p.grid, p.miss_min_cells), "{share}");
+            assert!(!narrow_miss(box_px(share), w, h, p.grid, p.miss_min_cells), "{share}");
         }
-        assert!(!narrow_miss(&[], w, h, p.grid, p.miss_min_cells));
+        assert!(!narrow_miss([], w, h, p.grid, p.miss_min_cells));
         // A wide view's few scattered matches (a turned attitude's wrong
         // ones) fall in 5 cells but span the image: no narrow view.
         let scattered = [(100.0, 80.0), (900.0, 120.0), (500.0, 400.0), (150.0, 700.0), (950.0, 690.0)]
             .map(|(u, v)| Pixel::new(u, v));
         assert_eq!(inlier_spread(&scattered, w, h, p.grid).0, 5);
-        assert_eq!(spanned_cells(&scattered, w, h, p.grid), 48);
-        assert!(!narrow_miss(&scattered, w, h, p.grid, p.miss_min_cells));
+        assert_eq!(spanned_cells(scattered, w, h, p.grid), 48);
+        assert!(!narrow_miss(scattered, w, h, p.grid, p.miss_min_cells));
         // Three of them on one row of cells: a strip 8 cells long.
         let strip = [(100.0, 80.0), (900.0, 120.0), (500.0, 60.0)].map(|(u, v)| Pixel::new(u, v));
-        assert_eq!(spanned_cells(&strip, w, h, p.grid), 8);
+        assert_eq!(spanned_cells(strip, w, h, p.grid), 8);
     }
 
     /// A `[dtheta; dp]` covariance of `att_deg` about and `pos_m` along

@@ -139,7 +139,9 @@ struct BuildArgs {
     /// Density fill: where fewer than this share of the ~120 cells a camera
     /// sees around a cell kept a landmark (water, bare ground), textured cells
     /// keep up to 4x --per-cell (a --camera that sees more cells: its view,
-    /// and as many landmarks); 0: off (default: 0.7 with --camera, else off).
+    /// and as many landmarks); 0: off (default: 0.7 with --camera; without
+    /// it, 0.7 on a finest level whose ortho is too coarse for the lowest
+    /// cameras, off on the others).
     #[arg(long)]
     fill_share: Option<f32>,
     /// Number of levels (template footprint doubles per level); default: as

@@ -108,6 +108,14 @@ fn check_sample(s: &Sample) {
     args.extend_from_slice(s.extra);
     let o = common::run(&args);
     assert!(o.status.success(), "build failed: {}", common::stderr(&o));
+    // Every sample's ortho (28.5-167 m) is too coarse for the default
+    // envelope's finest cameras: its finest level, whose cells are half a
+    // footprint, gets the density fill; the other levels none.
+    let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let fills: Vec<f64> =
+        report["levels"].as_array().unwrap().iter().map(|l| l["fill_share"].as_f64().unwrap()).collect();
+    assert_eq!(fills[0], 0.7, "{}: the finest level's fill {fills:?}", s.ortho);
+    assert!(fills[1..].iter().all(|&f| f == 0.0), "{}: fills {fills:?}", s.ortho);
 
     let db = LandmarkDb::open(&db_path).unwrap();
     let ortho = Dataset::open(&ortho_path).unwrap();

@@ -91,7 +91,7 @@ fn level_plans(
     let top = offset + specs.iter().map(|s| s.gsd_step as usize).max().unwrap_or(0);
     let shares = sizing::spacing_shares(specs, &opts.gsd_range(), opts.mission.as_ref());
     let fills =
-        sizing::fill_windows(specs, &opts.gsd_range(), opts.mission.as_ref(), opts.fill_share() as f64);
+        sizing::fill_windows(specs, &opts.gsd_range(), opts.mission.as_ref(), opts.fill_share.map(f64::from));
     let plans_for = |p: usize| -> Vec<LevelPlan> {
         let Some(step) = p.checked_sub(offset) else { return Vec::new() };
         let scale = 2f64.powi(p as i32);
@@ -115,7 +115,7 @@ fn level_plans(
                         cell_w: (sp / px_w).round().max(2.0) as usize,
                         cell_h: (sp / px_h).round().max(2.0) as usize,
                         per_cell: opts.per_cell,
-                        fill: (opts.fill_share() > 0.0).then_some(Fill {
+                        fill: (fills[index].1 > 0.0).then_some(Fill {
                             share: fills[index].1 as f32,
                             window_w: fills[index].0 .0,
                             window_h: fills[index].0 .1,

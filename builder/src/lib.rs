@@ -77,8 +77,10 @@ pub struct BuildOptions {
     /// cells a camera sees around a cell kept a landmark (water, bare ground,
     /// the scene's edge), its textured cells keep up to 4 times `per_cell`
     /// ([`select::Fill`]); 0: off; `None`: [`sizing::USABLE_SHARE`] for a
-    /// mission (its cells are sized for it), off for the default envelope
-    /// (whose cameras see several times the landmarks they need).
+    /// mission (its cells are sized for it) and, without one, on a finest
+    /// level whose ortho is too coarse for the envelope's finest cameras;
+    /// off on the default envelope's other levels (whose cameras see several
+    /// times the landmarks they need): [`sizing::fill_windows`].
     pub fill_share: Option<f32>,
     /// Number of levels; `None`: as many as the served camera resolutions need.
     pub levels: Option<u8>,
@@ -148,12 +150,6 @@ impl BuildOptions {
     /// default cell is `share` of its footprint ([`sizing::spacing_shares`]).
     pub fn spacing(&self, size_px: u32, share: f64) -> u32 {
         self.spacing_px.unwrap_or(((size_px as f64 * share).round() as u32).max(1))
-    }
-
-    /// The density fill's share ([`BuildOptions::fill_share`]).
-    pub fn fill_share(&self) -> f32 {
-        let auto = if self.mission.is_some() { sizing::USABLE_SHARE as f32 } else { 0.0 };
-        self.fill_share.unwrap_or(auto)
     }
 
     /// Camera resolutions the database is sized for.
@@ -296,6 +292,9 @@ pub struct LevelReport {
     pub footprint_m: f64,
     /// Side of the selection cell that keeps one landmark (m).
     pub cell_m: f64,
+    /// The density fill's share of cells the level aims to give a landmark
+    /// ([`sizing::fill_windows`]); 0: no fill.
+    pub fill_share: f64,
     pub templates: usize,
     /// Ortho area with usable pixels (selection cells with a valid,
     /// unsaturated window), km², and landmarks per km² of it.
@@ -414,7 +413,13 @@ pub fn build(
     };
     let (tallies, summary) = select_and_write(&ctx, &groups, writer)?;
     tracing::debug!("selection and writing done at {:.2} s", started.elapsed().as_secs_f64());
-    let (per_level, rejected, candidates) = level_reports(&specs, &tallies, &summary);
+    let fills = sizing::fill_windows(
+        &specs,
+        &opts.gsd_range(),
+        opts.mission.as_ref(),
+        opts.fill_share.map(f64::from),
+    );
+    let (per_level, rejected, candidates) = level_reports(&specs, &fills, &tallies, &summary);
     if summary.template_count == 0 {
         return Err(BuildError::NoTemplates);
     }
@@ -574,6 +579,7 @@ fn log_ladder(specs: &[LevelSpec], range: &GsdRange, serves: Option<&GsdRange>, 
 /// the rejections by reason over all levels, and the candidates offered.
 fn level_reports(
     specs: &[LevelSpec],
+    fills: &[((usize, usize), f64)],
     tallies: &[LevelTally],
     summary: &trn_store::DbSummary,
 ) -> (Vec<LevelReport>, BTreeMap<String, usize>, usize) {
@@ -582,7 +588,8 @@ fn level_reports(
     let per_level: Vec<LevelReport> = specs
         .iter()
         .zip(tallies)
-        .map(|(s, t)| {
+        .zip(fills)
+        .map(|((s, t), &(_, fill_share))| {
             let n = summary.levels.iter().find(|l| l.level == s.level).map(|l| l.count as usize).unwrap_or(0);
             let level_rejected: BTreeMap<String, usize> =
                 t.rejected.iter().map(|(k, v)| (format!("{k:?}"), *v)).collect();
@@ -597,6 +604,7 @@ fn level_reports(
                 template_px: s.size_px,
                 footprint_m: s.footprint_m(),
                 cell_m: t.cell_area_m2.sqrt(),
+                fill_share,
                 templates: n,
                 covered_km2: km2,
                 per_km2: if km2 > 0.0 { n as f64 / km2 } else { 0.0 },
@@ -617,11 +625,12 @@ fn level_reports(
         .collect();
     for l in &per_level {
         info!(
-            "level {} ({} px at {} m, {:.0} m): {} templates, {:.2} per km² over {:.0} km²; empty cells {:?}; rejected {:?}",
+            "level {} ({} px at {} m, {:.0} m, fill {}): {} templates, {:.2} per km² over {:.0} km²; empty cells {:?}; rejected {:?}",
             l.level,
             l.template_px,
             l.gsd_m,
             l.footprint_m,
+            l.fill_share,
             l.templates,
             l.per_km2,
             l.covered_km2,

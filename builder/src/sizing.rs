@@ -238,10 +238,17 @@ pub fn spacing_shares(levels: &[LevelSpec], range: &GsdRange, mission: Option<&M
         .zip(widest_spans(levels, range))
         .map(|(l, span)| match mission {
             Some(m) => m.spacing_share(span),
-            None if span > MAX_SPAN_PX * 1.001 => 0.5,
+            None if too_coarse(span) => 0.5,
             None => DEFAULT_ENVELOPE.spacing_share(l.footprint_m()),
         })
         .collect()
+}
+
+/// Whether a level whose templates span `span_px` at their widest is finer
+/// than its ortho can serve: the default envelope's finest level on an ortho
+/// coarser than its finest cameras (see [`spacing_shares`]).
+fn too_coarse(span_px: f64) -> bool {
+    span_px > MAX_SPAN_PX * 1.001
 }
 
 /// Where each level's templates span their widest in an image (px): see
@@ -265,14 +272,25 @@ fn widest_spans(levels: &[LevelSpec], range: &GsdRange) -> Vec<f64> {
 /// footprint), the window is its view and the share what gives as many
 /// landmarks as `share` of [`CELLS_IN_VIEW`] would, so a view over a lake
 /// still holds what it needs without the shore's cells filling up to the
-/// quota's cap.
+/// quota's cap. A share of 0 is no fill. `share` `None`: [`USABLE_SHARE`]
+/// for a mission; without one, [`USABLE_SHARE`] on a finest level whose
+/// ortho is too coarse for the envelope's finest cameras (its cells are
+/// already half a footprint, the least [`spacing_shares`] gives, and a low
+/// camera's view still holds few of them), none elsewhere (the envelope's
+/// cameras see several times the landmarks they need there).
 pub fn fill_windows(
     levels: &[LevelSpec],
     range: &GsdRange,
     mission: Option<&Mission>,
-    share: f64,
+    share: Option<f64>,
 ) -> Vec<((usize, usize), f64)> {
-    let Some(m) = mission else { return vec![(VIEW_CELLS, share); levels.len()] };
+    let Some(m) = mission else {
+        return widest_spans(levels, range)
+            .into_iter()
+            .map(|span| (VIEW_CELLS, share.unwrap_or(if too_coarse(span) { USABLE_SHARE } else { 0.0 })))
+            .collect();
+    };
+    let share = share.unwrap_or(USABLE_SHARE);
     widest_spans(levels, range)
         .into_iter()
         .map(|span| {
@@ -429,10 +447,10 @@ mod tests {
         // fewer: 13 x 9 and the share asked for; the large one sees 22.6 x
         // 17 cells, and aims at as many landmarks as 0.7 of 120.
         for cam in [&m, &mid] {
-            let f = fill_windows(&l, &r, Some(cam), 0.7);
+            let f = fill_windows(&l, &r, Some(cam), Some(0.7));
             assert!(f.iter().all(|&(w, s)| w == VIEW_CELLS && s == 0.7), "{f:?}");
         }
-        let f = fill_windows(&l, &r, Some(&big), 0.7);
+        let f = fill_windows(&l, &r, Some(&big), Some(0.7));
         for &((cols, rows), share) in &f[1..] {
             assert_eq!((cols, rows), (23, 17));
             assert!((share * 384.0 - 0.7 * CELLS_IN_VIEW).abs() < 1e-9, "{share}");
@@ -450,6 +468,36 @@ mod tests {
         let s = spacing_shares(&l, &env, None);
         assert!((l[0].footprint_m() - 32.0).abs() < 1e-9 && (s[0] - 1.742).abs() < 1e-3, "{s:?}");
         assert!(s[1..].iter().all(|&x| x == 1.0), "{s:?}");
+    }
+
+    /// Without a mission, the density fill is on where the cells cannot
+    /// shrink further: the finest level of an ortho too coarse for the
+    /// envelope's finest cameras (the level whose cells are half a
+    /// footprint), and off elsewhere; a share asked for applies everywhere.
+    #[test]
+    fn envelope_fill_only_where_the_ortho_is_too_coarse() {
+        let env = GsdRange::of_envelope(&DEFAULT_ENVELOPE);
+        for base in [0.5, 1.0, 5.0, 30.0] {
+            let l = ladder(base, 16, 32, &env, None);
+            let shares = spacing_shares(&l, &env, None);
+            let f = fill_windows(&l, &env, None, None);
+            assert_eq!(f.len(), l.len());
+            for (k, (&(window, fill), &share)) in f.iter().zip(&shares).enumerate() {
+                assert_eq!(window, VIEW_CELLS);
+                let want = if share == 0.5 { USABLE_SHARE } else { 0.0 };
+                assert_eq!(fill, want, "base {base} level {k}: spacing share {share}");
+            }
+            let asked = fill_windows(&l, &env, None, Some(0.4));
+            assert!(asked.iter().all(|&(w, s)| w == VIEW_CELLS && s == 0.4), "{asked:?}");
+            let off = fill_windows(&l, &env, None, Some(0.0));
+            assert!(off.iter().all(|&(_, s)| s == 0.0), "{off:?}");
+        }
+        // The 30 m ortho's finest level (16 px, 480 m) fills; a 1 m ortho's
+        // finest (32 px at 1 m spans 46 px at the finest 0.69 m) does not.
+        let fill_of = |base: f64| fill_windows(&ladder(base, 16, 32, &env, None), &env, None, None);
+        assert_eq!(fill_of(30.0)[0].1, USABLE_SHARE);
+        assert!(fill_of(30.0)[1..].iter().all(|&(_, s)| s == 0.0));
+        assert!(fill_of(1.0).iter().all(|&(_, s)| s == 0.0));
     }
 
     /// Brute force over the default envelope's cameras: the cells in view of

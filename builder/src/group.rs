@@ -90,8 +90,7 @@ fn level_plans(
     let offset = ((base_gsd / native).log2() + 1e-9).floor().max(0.0) as usize;
     let top = offset + specs.iter().map(|s| s.gsd_step as usize).max().unwrap_or(0);
     let shares = sizing::spacing_shares(specs, &opts.gsd_range(), opts.mission.as_ref());
-    let fills =
-        sizing::fill_windows(specs, &opts.gsd_range(), opts.mission.as_ref(), opts.fill_share.map(f64::from));
+    let fills = opts.fill_windows(specs);
     let plans_for = |p: usize| -> Vec<LevelPlan> {
         let Some(step) = p.checked_sub(offset) else { return Vec::new() };
         let scale = 2f64.powi(p as i32);

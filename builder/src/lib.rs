@@ -152,6 +152,12 @@ impl BuildOptions {
         self.spacing_px.unwrap_or(((size_px as f64 * share).round() as u32).max(1))
     }
 
+    /// The density fill's window and share per level of `specs`
+    /// ([`sizing::fill_windows`]; a share of 0: no fill).
+    pub fn fill_windows(&self, specs: &[LevelSpec]) -> Vec<((usize, usize), f64)> {
+        sizing::fill_windows(specs, &self.gsd_range(), self.mission.as_ref(), self.fill_share.map(f64::from))
+    }
+
     /// Camera resolutions the database is sized for.
     pub fn gsd_range(&self) -> GsdRange {
         match &self.mission {
@@ -413,13 +419,8 @@ pub fn build(
     };
     let (tallies, summary) = select_and_write(&ctx, &groups, writer)?;
     tracing::debug!("selection and writing done at {:.2} s", started.elapsed().as_secs_f64());
-    let fills = sizing::fill_windows(
-        &specs,
-        &opts.gsd_range(),
-        opts.mission.as_ref(),
-        opts.fill_share.map(f64::from),
-    );
-    let (per_level, rejected, candidates) = level_reports(&specs, &fills, &tallies, &summary);
+    let (per_level, rejected, candidates) =
+        level_reports(&specs, &opts.fill_windows(&specs), &tallies, &summary);
     if summary.template_count == 0 {
         return Err(BuildError::NoTemplates);
     }

@@ -114,10 +114,10 @@ fn level_plans(
                         cell_w: (sp / px_w).round().max(2.0) as usize,
                         cell_h: (sp / px_h).round().max(2.0) as usize,
                         per_cell: opts.per_cell,
-                        fill: (fills[index].1 > 0.0).then_some(Fill {
-                            share: fills[index].1 as f32,
-                            window_w: fills[index].0 .0,
-                            window_h: fills[index].0 .1,
+                        fill: (fills[index].share > 0.0).then_some(Fill {
+                            share: fills[index].share as f32,
+                            window_w: fills[index].cols,
+                            window_h: fills[index].rows,
                             max_boost: FILL_MAX_BOOST,
                         }),
                         min_shi_tomasi: opts.min_shi_tomasi,

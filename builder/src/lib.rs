@@ -154,7 +154,7 @@ impl BuildOptions {
 
     /// The density fill's window and share per level of `specs`
     /// ([`sizing::fill_windows`]; a share of 0: no fill).
-    pub fn fill_windows(&self, specs: &[LevelSpec]) -> Vec<((usize, usize), f64)> {
+    pub fn fill_windows(&self, specs: &[LevelSpec]) -> Vec<sizing::FillWindow> {
         sizing::fill_windows(specs, &self.gsd_range(), self.mission.as_ref(), self.fill_share.map(f64::from))
     }
 
@@ -580,7 +580,7 @@ fn log_ladder(specs: &[LevelSpec], range: &GsdRange, serves: Option<&GsdRange>, 
 /// the rejections by reason over all levels, and the candidates offered.
 fn level_reports(
     specs: &[LevelSpec],
-    fills: &[((usize, usize), f64)],
+    fills: &[sizing::FillWindow],
     tallies: &[LevelTally],
     summary: &trn_store::DbSummary,
 ) -> (Vec<LevelReport>, BTreeMap<String, usize>, usize) {
@@ -590,7 +590,7 @@ fn level_reports(
         .iter()
         .zip(tallies)
         .zip(fills)
-        .map(|((s, t), &(_, fill_share))| {
+        .map(|((s, t), fill)| {
             let n = summary.levels.iter().find(|l| l.level == s.level).map(|l| l.count as usize).unwrap_or(0);
             let level_rejected: BTreeMap<String, usize> =
                 t.rejected.iter().map(|(k, v)| (format!("{k:?}"), *v)).collect();
@@ -605,7 +605,7 @@ fn level_reports(
                 template_px: s.size_px,
                 footprint_m: s.footprint_m(),
                 cell_m: t.cell_area_m2.sqrt(),
-                fill_share,
+                fill_share: fill.share,
                 templates: n,
                 covered_km2: km2,
                 per_km2: if km2 > 0.0 { n as f64 / km2 } else { 0.0 },

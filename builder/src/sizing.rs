@@ -265,8 +265,23 @@ fn widest_spans(levels: &[LevelSpec], range: &GsdRange) -> Vec<f64> {
     levels.iter().enumerate().map(|(k, l)| finest(k, l)).collect()
 }
 
-/// The density fill's window (cells across, down) and the share of its
-/// cells it aims to give a landmark, per level: [`VIEW_CELLS`] and `share`
+/// One level's density fill: its window, in selection cells, and the share
+/// of the window's cells it aims to give a landmark (0: no fill).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FillWindow {
+    pub cols: usize,
+    pub rows: usize,
+    pub share: f64,
+}
+
+impl FillWindow {
+    /// The [`VIEW_CELLS`] window aiming at `share`.
+    fn view(share: f64) -> Self {
+        FillWindow { cols: VIEW_CELLS.0, rows: VIEW_CELLS.1, share }
+    }
+}
+
+/// The density fill's window and share per level: [`VIEW_CELLS`] and `share`
 /// where a camera sees about [`CELLS_IN_VIEW`] cells; where a mission's
 /// camera sees more (a large image, whose cells are capped at one
 /// footprint), the window is its view and the share what gives as many
@@ -283,11 +298,11 @@ pub fn fill_windows(
     range: &GsdRange,
     mission: Option<&Mission>,
     share: Option<f64>,
-) -> Vec<((usize, usize), f64)> {
+) -> Vec<FillWindow> {
     let Some(m) = mission else {
         return widest_spans(levels, range)
             .into_iter()
-            .map(|span| (VIEW_CELLS, share.unwrap_or(if too_coarse(span) { USABLE_SHARE } else { 0.0 })))
+            .map(|span| FillWindow::view(share.unwrap_or(if too_coarse(span) { USABLE_SHARE } else { 0.0 })))
             .collect();
     };
     let share = share.unwrap_or(USABLE_SHARE);
@@ -297,11 +312,13 @@ pub fn fill_windows(
             let cell = span * m.spacing_share(span);
             let (cols, rows) = (m.width_px as f64 / cell, m.height_px as f64 / cell);
             if cols * rows <= CELLS_IN_VIEW {
-                return (VIEW_CELLS, share);
+                return FillWindow::view(share);
             }
-            let window =
-                ((cols.round() as usize).max(VIEW_CELLS.0), (rows.round() as usize).max(VIEW_CELLS.1));
-            (window, share * CELLS_IN_VIEW / (cols * rows))
+            FillWindow {
+                cols: (cols.round() as usize).max(VIEW_CELLS.0),
+                rows: (rows.round() as usize).max(VIEW_CELLS.1),
+                share: share * CELLS_IN_VIEW / (cols * rows),
+            }
         })
         .collect()
 }
@@ -448,12 +465,12 @@ mod tests {
         // 17 cells, and aims at as many landmarks as 0.7 of 120.
         for cam in [&m, &mid] {
             let f = fill_windows(&l, &r, Some(cam), Some(0.7));
-            assert!(f.iter().all(|&(w, s)| w == VIEW_CELLS && s == 0.7), "{f:?}");
+            assert!(f.iter().all(|&w| w == FillWindow::view(0.7)), "{f:?}");
         }
         let f = fill_windows(&l, &r, Some(&big), Some(0.7));
-        for &((cols, rows), share) in &f[1..] {
-            assert_eq!((cols, rows), (23, 17));
-            assert!((share * 384.0 - 0.7 * CELLS_IN_VIEW).abs() < 1e-9, "{share}");
+        for w in &f[1..] {
+            assert_eq!((w.cols, w.rows), (23, 17));
+            assert!((w.share * 384.0 - 0.7 * CELLS_IN_VIEW).abs() < 1e-9, "{w:?}");
         }
         // Without a mission: one footprint, half one where the ortho is too coarse.
         let env = GsdRange::of_envelope(&DEFAULT_ENVELOPE);
@@ -482,22 +499,21 @@ mod tests {
             let shares = spacing_shares(&l, &env, None);
             let f = fill_windows(&l, &env, None, None);
             assert_eq!(f.len(), l.len());
-            for (k, (&(window, fill), &share)) in f.iter().zip(&shares).enumerate() {
-                assert_eq!(window, VIEW_CELLS);
+            for (k, (&fill, &share)) in f.iter().zip(&shares).enumerate() {
                 let want = if share == 0.5 { USABLE_SHARE } else { 0.0 };
-                assert_eq!(fill, want, "base {base} level {k}: spacing share {share}");
+                assert_eq!(fill, FillWindow::view(want), "base {base} level {k}: spacing share {share}");
             }
             let asked = fill_windows(&l, &env, None, Some(0.4));
-            assert!(asked.iter().all(|&(w, s)| w == VIEW_CELLS && s == 0.4), "{asked:?}");
+            assert!(asked.iter().all(|&w| w == FillWindow::view(0.4)), "{asked:?}");
             let off = fill_windows(&l, &env, None, Some(0.0));
-            assert!(off.iter().all(|&(_, s)| s == 0.0), "{off:?}");
+            assert!(off.iter().all(|w| w.share == 0.0), "{off:?}");
         }
         // The 30 m ortho's finest level (16 px, 480 m) fills; a 1 m ortho's
         // finest (32 px at 1 m spans 46 px at the finest 0.69 m) does not.
         let fill_of = |base: f64| fill_windows(&ladder(base, 16, 32, &env, None), &env, None, None);
-        assert_eq!(fill_of(30.0)[0].1, USABLE_SHARE);
-        assert!(fill_of(30.0)[1..].iter().all(|&(_, s)| s == 0.0));
-        assert!(fill_of(1.0).iter().all(|&(_, s)| s == 0.0));
+        assert_eq!(fill_of(30.0)[0].share, USABLE_SHARE);
+        assert!(fill_of(30.0)[1..].iter().all(|w| w.share == 0.0));
+        assert!(fill_of(1.0).iter().all(|w| w.share == 0.0));
     }
 
     /// Brute force over the default envelope's cameras: the cells in view of

@@ -29,6 +29,10 @@ const BULK_LOAD_PRAGMAS: &str = "PRAGMA page_size = 16384;
     PRAGMA temp_store = MEMORY;
     PRAGMA cache_size = -262144;";
 
+/// File growth between two `fdatasync`s while templates come in (see
+/// [`DbWriter::pace_sync`]).
+const SYNC_EVERY_BYTES: u64 = 16 << 20;
+
 /// Rows per multi-row INSERT: one statement execution, with its fixed costs (the
 /// AUTOINCREMENT bookkeeping among them), serves this many templates.
 const ROWS_PER_INSERT: usize = 16;
@@ -48,6 +52,8 @@ pub struct DbWriter {
     stored: Vec<Stored>,
     /// The file, for starting its write-back while batches come in.
     file: Option<std::fs::File>,
+    /// Its length at the last `fdatasync`.
+    synced_len: u64,
 }
 
 impl std::fmt::Debug for DbWriter {
@@ -107,6 +113,7 @@ impl DbWriter {
             heights: Vec::new(),
             stored: Vec::new(),
             file: std::fs::File::open(path).ok(),
+            synced_len: 0,
         })
     }
 
@@ -120,6 +127,22 @@ impl DbWriter {
             use std::os::fd::AsRawFd;
             // SAFETY: a valid open descriptor; offset 0 and length 0 mean the whole file.
             unsafe { libc::sync_file_range(f.as_raw_fd(), 0, 0, libc::SYNC_FILE_RANGE_WRITE) };
+        }
+    }
+
+    /// Makes the file durable every [`SYNC_EVERY_BYTES`] of growth, from the
+    /// writer's thread while the builder's threads compute: the one fsync of
+    /// [`DbWriter::finish`] then commits only the tail. An fsync of a fresh
+    /// file costs about a millisecond per MB after its data is written
+    /// (measured on ext4: 120 ms for 120 MB at the end, 8 ms in 16 MB steps),
+    /// mostly the journal's record of the new blocks. Advisory: errors are
+    /// ignored (the final fsync reports them).
+    fn pace_sync(&mut self) {
+        let Some(f) = &self.file else { return };
+        let Ok(len) = f.metadata().map(|m| m.len()) else { return };
+        if len >= self.synced_len + SYNC_EVERY_BYTES {
+            let _ = f.sync_data();
+            self.synced_len = len;
         }
     }
 
@@ -196,6 +219,7 @@ impl DbWriter {
         }
         tx.commit().at(&self.path)?;
         self.start_writeback();
+        self.pace_sync();
         for (t, id) in templates.iter_mut().zip(first_id..) {
             t.id = id;
             self.stored.push(Stored {

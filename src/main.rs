@@ -404,6 +404,12 @@ struct NavigateArgs {
     /// the database's lighting is not the flight's sun (0: ignored).
     #[arg(long, default_value_t = 0.5, value_parser = parse_share)]
     shading_weight: f64,
+    /// Landmarks closer on the ground than this share of a template's
+    /// footprint to a better one in the same image cell are near duplicates
+    /// (most of their pixels the same), taken only after the others
+    /// (0: off).
+    #[arg(long, default_value_t = 0.5, value_parser = parse_share)]
+    duplicate_separation: f64,
     /// How the matches meet the inertial sensors: `tight` (an inertial
     /// filter updated with each frame's matches), `loose` (updated with each
     /// frame's image-only pose) or `fixes` (no inertial filter: each
@@ -848,6 +854,7 @@ fn nav_params(a: &NavigateArgs) -> trn_navigator::NavParams {
     params.principal_point_from_tracks = a.principal_point_from_tracks;
     params.sun = a.sun;
     params.shading_weight = a.shading_weight;
+    params.duplicate_separation = a.duplicate_separation;
     params.gyro_arw_deg_sqrt_s = a.gyro_arw / 60.0;
     params.gyro_bias_deg_s = a.gyro_bias / 3600.0;
     params.gyro_max_jump_deg_s = a.gyro_max_jump;

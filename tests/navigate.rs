@@ -1311,10 +1311,13 @@ fn a_glitch_in_a_cloud_is_undone_when_the_cloud_ends() {
 /// 0`, the rule before stop 57), each after the fourth doubled the pose's
 /// doubt until its search was a wide acquisition that did not stand when
 /// the hole ended: no fix from 24 s to the flight's end at 32 s, the pose
-/// 121-182 m off and drifting, 34 frames doubted. A narrow view's
+/// 121-182 m off and drifting, 34 frames doubted (stop 58; since stop 59
+/// takes near-duplicate landmarks last, 25 frames doubted and 9 of the 17
+/// frames after the hole fixed, 235 m off at worst). A narrow view's
 /// disagreeing matches are no miss by default: no frame is doubted, and
-/// every frame after the hole fixes, within 141 m (the release build, on
-/// the default database with its finest level filled; 109 m before).
+/// every frame after the hole fixes, within 98 m (the release build, stop
+/// 59; 141 m in stop 58's, the default database's finest level filled;
+/// 109 m before).
 #[test]
 fn a_long_hole_in_the_cloud_does_not_doubt_the_pose_out_of_its_search() {
     let dir = tempfile::tempdir().unwrap();
@@ -1345,10 +1348,13 @@ fn a_long_hole_in_the_cloud_does_not_doubt_the_pose_out_of_its_search() {
     let (doubted, fixes, worst) = after_hole("poses.csv", &[]);
     assert_eq!((doubted, fixes), (0, 17), "worst {worst:.1} m");
     assert!(worst < 150.0, "worst error after the hole: {worst:.1} m");
-    let (doubted, fixes, worst) = after_hole("every-miss.csv", &["--miss-min-cells", "0"]);
+    let (doubted_old, fixes_old, worst_old) = after_hole("every-miss.csv", &["--miss-min-cells", "0"]);
+    println!("--miss-min-cells 0: {doubted_old} doubted, {fixes_old} fixes after the hole, worst {worst_old:.1} m; default: worst {worst:.1} m");
+    // The old rule doubts the pose and loses frames after the hole.
     assert!(
-        doubted > 0 && fixes < 9,
-        "{doubted} frames doubted, {fixes} fixes after the hole, worst {worst:.1} m"
+        doubted_old > 0 && fixes_old <= 12 && worst_old > worst,
+        "{doubted_old} frames doubted, {fixes_old} fixes after the hole, worst {worst_old:.1} m \
+         (by default {worst:.1} m)"
     );
 }
 

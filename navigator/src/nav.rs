@@ -268,7 +268,7 @@ pub struct NavParams {
     /// pixels are the same, so are their matches' errors, and the pose would
     /// count one place's map error several times. In an image cell, a
     /// landmark within this of a better one is taken only after every one
-    /// that is not ([`Navigator::spread`]). 0.5 is the separation the builder
+    /// that is not (`Navigator::spread`). 0.5 is the separation the builder
     /// keeps inside one of its cells; across its cells and between levels it
     /// keeps none. Measured on six other renderings of the eight realistic
     /// flights: 293.1 -> 276.9 m (the sum of the means; 0.35: 276.6, 0.7:

@@ -10,6 +10,7 @@ use nalgebra::{
 use tracing::{debug, info};
 use trn_camera::{CameraConfig, CameraModel, CameraPose, Pixel};
 use trn_flight::{FixStatus, ImuSample, MatchRecord, NavRecord, PoseCovariance, TimedPose};
+use trn_geodesy::Ecef;
 use trn_landmark::lighting::SunLight;
 use trn_landmark::Template;
 use trn_vision::calib::{frame_calibration, perturb_pose, FrameCalibration};
@@ -3053,9 +3054,11 @@ impl<'a> Navigator<'a> {
     ) -> Vec<&'t Template> {
         let (gx, gy) = self.params.grid;
         let (w, h) = (self.camera.width as f64, self.camera.height as f64);
-        let mut cells: Vec<Vec<(f32, &Template)>> = vec![Vec::new(); gx * gy];
+        // Per cell: (score, centre, template).
+        let mut cells: Vec<Vec<(f32, Ecef, &Template)>> = vec![Vec::new(); gx * gy];
         for t in templates {
-            let Some(p) = pose.project(&self.camera, &t.center_ecef()) else { continue };
+            let at = t.center_ecef();
+            let Some(p) = pose.project(&self.camera, &at) else { continue };
             let m = margin_px;
             if !(p.u >= -m && p.v >= -m && p.u < w + m && p.v < h + m) {
                 continue;
@@ -3072,7 +3075,7 @@ impl<'a> Navigator<'a> {
                 1.0 - self.params.shading_weight as f32 * q.shading_share.clamp(0.0, 1.0)
             };
             let score = q.shi_tomasi.sqrt() * (1.0 - q.second_peak_ncc).max(0.01) * area * stable;
-            cells[cy.min(gy - 1) * gx + cx.min(gx - 1)].push((score, t));
+            cells[cy.min(gy - 1) * gx + cx.min(gx - 1)].push((score, at, t));
         }
         // A tile's acquisition level searches fewer ([`ACQUISITION_TILE_LANDMARKS`]).
         let cap = self.tile_landmarks.get().filter(|_| margin_px > 0.0).unwrap_or(self.params.max_landmarks);
@@ -3086,7 +3089,7 @@ impl<'a> Navigator<'a> {
         while out.len() < cap {
             let mut any = false;
             for c in &cells {
-                if let Some((_, t)) = c.get(round) {
+                if let Some((_, _, t)) = c.get(round) {
                     out.push(*t);
                     any = true;
                     if out.len() == cap {
@@ -3103,28 +3106,25 @@ impl<'a> Navigator<'a> {
     }
 }
 
-/// Reorders a cell's landmarks (best first) so that each one closer on the
-/// ground to a better one kept before it than `separation` times the larger
-/// of their footprints (`width_px * gsd_m`) comes after every one that is
-/// not, each group in its order. Only the first `cap` kept are looked for
-/// (no more can be taken from a cell), so the work stays `cap` distances a
-/// landmark. `separation` 0: unchanged.
-fn duplicates_last<S: Copy>(cell: &mut Vec<(S, &Template)>, separation: f64, cap: usize) {
+/// Reorders a cell's landmarks (best first; each with its centre) so that
+/// each one closer on the ground to a better one kept before it than
+/// `separation` times the larger of their footprints (`width_px * gsd_m`)
+/// comes after every one that is not, each group in its order. Only the
+/// first `cap` kept are looked for (no more can be taken from a cell), so
+/// the work stays `cap` distances a landmark. `separation` 0: unchanged.
+fn duplicates_last(cell: &mut Vec<(f32, Ecef, &Template)>, separation: f64, cap: usize) {
     if separation <= 0.0 || cell.len() < 2 {
         return;
     }
-    let mut kept: Vec<(S, &Template)> = Vec::with_capacity(cell.len());
-    let mut later: Vec<(S, &Template)> = Vec::new();
-    let mut kept_at: Vec<(trn_geodesy::Ecef, f64)> = Vec::new();
-    for &(score, t) in cell.iter() {
-        let (at, radius_m) = (t.center_ecef(), separation * t.width_px as f64 * t.gsd_m);
-        let duplicate =
-            kept_at.len() >= cap || kept_at.iter().any(|(q, rq)| (q.0 - at.0).norm() < radius_m.max(*rq));
-        if duplicate {
-            later.push((score, t));
+    let radius_m = |t: &Template| separation * t.width_px as f64 * t.gsd_m;
+    let (mut kept, mut later) = (Vec::with_capacity(cell.len()), Vec::new());
+    for &entry in cell.iter() {
+        let (_, at, t) = entry;
+        let near = |&(_, q, u): &(f32, Ecef, &Template)| (q.0 - at.0).norm() < radius_m(t).max(radius_m(u));
+        if kept.len() >= cap || kept.iter().any(near) {
+            later.push(entry);
         } else {
-            kept_at.push((at, radius_m));
-            kept.push((score, t));
+            kept.push(entry);
         }
     }
     kept.extend(later);
@@ -4409,25 +4409,21 @@ mod tests {
             template_east(6, 100.0, 1.0), // 20 m from 5, within its 32 m: a duplicate
             template_east(7, 130.0, 1.0), // 50 m from 5: kept
         ];
-        let ids = |c: &[(f32, &Template)]| c.iter().map(|(_, t)| t.id).collect::<Vec<_>>();
-        let cell = || ts.iter().enumerate().map(|(i, t)| (-(i as f32), t)).collect::<Vec<_>>();
-        let mut c = cell();
-        duplicates_last(&mut c, 0.5, 450);
-        assert_eq!(ids(&c), [1, 3, 5, 7, 2, 4, 6]);
+        let order = |separation: f64, cap: usize| {
+            let mut c: Vec<_> =
+                ts.iter().enumerate().map(|(i, t)| (-(i as f32), t.center_ecef(), t)).collect();
+            duplicates_last(&mut c, separation, cap);
+            c.iter().map(|(_, _, t)| t.id).collect::<Vec<_>>()
+        };
+        assert_eq!(order(0.5, 450), [1, 3, 5, 7, 2, 4, 6]);
         // Off: unchanged.
-        let mut c = cell();
-        duplicates_last(&mut c, 0.0, 450);
-        assert_eq!(ids(&c), [1, 2, 3, 4, 5, 6, 7]);
+        assert_eq!(order(0.0, 450), [1, 2, 3, 4, 5, 6, 7]);
         // A wider separation (64 m; 128 m for 5) leaves fewer apart: 5 is
         // 80 m from 1, within its own 128 m; 6, 100 m from 1, is the first
         // beyond 64 m; 7 is 30 m from 6.
-        let mut c = cell();
-        duplicates_last(&mut c, 2.0, 450);
-        assert_eq!(ids(&c), [1, 6, 2, 3, 4, 5, 7]);
+        assert_eq!(order(2.0, 450), [1, 6, 2, 3, 4, 5, 7]);
         // No more than the cap are looked for: the rest keep their order.
-        let mut c = cell();
-        duplicates_last(&mut c, 0.5, 2);
-        assert_eq!(ids(&c), [1, 3, 2, 4, 5, 6, 7]);
+        assert_eq!(order(0.5, 2), [1, 3, 2, 4, 5, 6, 7]);
     }
 
     #[test]

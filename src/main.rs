@@ -324,8 +324,8 @@ struct NavigateArgs {
     /// widens by 3 sigma of the vertical velocity per second since that fix.
     #[arg(long, default_value_t = 450.0)]
     max_height_jump: f64,
-    /// Landmarks correlated per image.
-    #[arg(long, default_value_t = 450)]
+    /// Landmarks correlated per image (spread over it, near duplicates last).
+    #[arg(long, default_value_t = 600)]
     max_landmarks: usize,
     /// Threads a frame's landmarks are predicted and correlated on. The
     /// poses are the same for any count; 1 (the default) keeps the navigator

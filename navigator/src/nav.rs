@@ -298,7 +298,7 @@ impl Default for NavParams {
             min_inlier_cells: 4,
             min_inlier_spread: 0.08,
             max_height_jump_m: 450.0,
-            max_landmarks: 450,
+            max_landmarks: 600,
             acquisition_budget_g: 30.0,
             grid: (8, 6),
             ransac_threshold_px: 3.0,

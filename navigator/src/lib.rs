@@ -598,6 +598,44 @@ pub fn run_flight(
     Ok(RunOutput { records, matches, covariances, imu_rate, report })
 }
 
+/// Templates for the unit tests of several modules.
+#[cfg(test)]
+pub(crate) mod test_fixtures {
+    use trn_geodesy::Geodetic;
+    use trn_landmark::{GeoBox, Template, TemplateQuality, TerrainPatch};
+
+    /// A square template of `size` pixels at `gsd_m` centred at `center`,
+    /// over `terrain`, with a texture that passes every quality test.
+    pub fn template(
+        id: i64,
+        center: Geodetic,
+        gsd_m: f64,
+        size: u32,
+        terrain: TerrainPatch,
+        pixels: Vec<u8>,
+    ) -> Template {
+        Template {
+            id,
+            level: 0,
+            gsd_m,
+            width_px: size,
+            height_px: size,
+            center,
+            footprint: GeoBox::new(0.0, 0.0, 0.0, 0.0),
+            terrain,
+            quality: TemplateQuality {
+                shi_tomasi: 10.0,
+                contrast_std: 30.0,
+                second_peak_ncc: 0.2,
+                shading_share: 0.0,
+            },
+            source: 0,
+            lighting: 0,
+            pixels,
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

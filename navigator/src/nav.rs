@@ -4367,33 +4367,16 @@ mod tests {
     /// A 32-pixel template at `gsd_m` whose centre is `east_m` east of a
     /// fixed point (brute-force distances below are along the east axis).
     fn template_east(id: i64, east_m: f64, gsd_m: f64) -> Template {
-        use trn_landmark::{GeoBox, HeightGrid, TemplateQuality, TerrainPatch};
+        use trn_landmark::{HeightGrid, TerrainPatch};
         let origin = Geodetic::new(37.0, -118.5, 2000.0);
         let frame = LocalFrame::at(origin);
         let center = frame.to_ecef(Enu::new(east_m, 0.0, 0.0)).to_geodetic();
-        Template {
-            id,
-            level: 0,
-            gsd_m,
-            width_px: 32,
-            height_px: 32,
-            center,
-            footprint: GeoBox::new(0.0, 0.0, 0.0, 0.0),
-            terrain: TerrainPatch {
-                plane_normal_enu: [0.0, 0.0, 1.0],
-                plane_residual_rms_m: 0.0,
-                height_grid: HeightGrid { n: 2, spacing_m: 32.0 * gsd_m, heights_m: vec![0.0; 4] },
-            },
-            quality: TemplateQuality {
-                shi_tomasi: 10.0,
-                contrast_std: 30.0,
-                second_peak_ncc: 0.2,
-                shading_share: 0.0,
-            },
-            source: 0,
-            lighting: 0,
-            pixels: vec![128; 32 * 32],
-        }
+        let terrain = TerrainPatch {
+            plane_normal_enu: [0.0, 0.0, 1.0],
+            plane_residual_rms_m: 0.0,
+            height_grid: HeightGrid { n: 2, spacing_m: 32.0 * gsd_m, heights_m: vec![0.0; 4] },
+        };
+        crate::test_fixtures::template(id, center, gsd_m, 32, terrain, vec![128; 32 * 32])
     }
 
     #[test]

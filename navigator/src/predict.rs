@@ -369,7 +369,7 @@ pub fn predict(
 mod tests {
     use super::*;
     use trn_geodesy::Geodetic;
-    use trn_landmark::{GeoBox, HeightGrid, TemplateQuality, TerrainPatch};
+    use trn_landmark::{HeightGrid, TerrainPatch};
 
     /// A 32-px template at 30 m over a ridge running north-south (height
     /// `ridge_m` at the centre line), with a smooth texture.
@@ -398,29 +398,18 @@ mod tests {
                     as u8
             })
             .collect();
-        Template {
-            id: 1,
-            level: 0,
-            gsd_m: gsd,
-            width_px: size,
-            height_px: size,
-            center: Geodetic::new(37.0, -118.5, 2000.0),
-            footprint: GeoBox::new(0.0, 0.0, 0.0, 0.0),
-            terrain: TerrainPatch {
+        crate::test_fixtures::template(
+            1,
+            Geodetic::new(37.0, -118.5, 2000.0),
+            gsd,
+            size,
+            TerrainPatch {
                 plane_normal_enu: [0.0, 0.0, 1.0],
                 plane_residual_rms_m: rms,
                 height_grid: HeightGrid { n, spacing_m: spacing, heights_m },
             },
-            quality: TemplateQuality {
-                shi_tomasi: 10.0,
-                contrast_std: 30.0,
-                second_peak_ncc: 0.2,
-                shading_share: 0.0,
-            },
-            source: 0,
-            lighting: 0,
             pixels,
-        }
+        )
     }
 
     /// Mean absolute difference between the patch and the template's own
